@@ -1,0 +1,78 @@
+//! Per-voxel features of occupied voxels, computed once per field.
+//!
+//! Segmentation queries features at grid points many times (NNFM over every
+//! occupied voxel, bilateral weights between neighbours); decoding a VM grid or
+//! interpolating a dense one each time would dominate. The cache is a flat
+//! `occupied × channels` f32 array plus a rank index that maps a voxel to its
+//! row in O(1), so there is no hash map and no per-voxel allocation.
+
+use super::bitmap::{Bitmap, RankIndex};
+use super::{Field, GridGeom};
+use crate::error::Result;
+use rayon::prelude::*;
+
+/// Voxels with activated density above this are "occupied": the floor below
+/// which the authors' code stops growing (σ > 0.001).
+pub const OCCUPIED_FLOOR: f32 = 1e-3;
+
+#[derive(Debug)]
+pub struct FeatureCache {
+    pub geom: GridGeom,
+    pub channels: usize,
+    /// Occupied voxel indices, ascending (row r of `feats` is voxel `voxels[r]`).
+    pub voxels: Vec<u32>,
+    pub index: RankIndex,
+    /// Activated density of each occupied voxel.
+    pub sigma: Vec<f32>,
+    /// Raw features, `voxels.len() × channels`.
+    pub feats: Vec<f32>,
+    /// 1 / ‖feature‖ per occupied voxel (0 for a zero feature).
+    pub inv_norm: Vec<f32>,
+}
+
+impl FeatureCache {
+    pub fn build(field: &Field) -> Result<Self> {
+        let geom = field.geom();
+        crate::ensure!(geom.len() <= u32::MAX as usize, "grid {:?} is too large to index", geom.res);
+        let channels = field.feature_channels();
+        crate::ensure!(channels > 0, "this field has no semantic features to segment with");
+        let d = &field.density;
+        let bits = Bitmap::from_fn(geom.res, |i| d.sigma_at(i) > OCCUPIED_FLOOR);
+        let voxels: Vec<u32> = bits.ones().map(|i| i as u32).collect();
+        let index = RankIndex::new(bits);
+        let sigma: Vec<f32> = voxels.par_iter().map(|&v| d.sigma_at(v as usize)).collect();
+        let mut feats = vec![0.0f32; voxels.len() * channels];
+        feats.par_chunks_mut(channels * 256).enumerate().for_each(|(chunk, out)| {
+            let mut s = field.sampler();
+            for (j, row) in out.chunks_mut(channels).enumerate() {
+                let v = voxels[chunk * 256 + j] as usize;
+                s.features(geom.point_of(v), row);
+            }
+        });
+        let inv_norm = feats
+            .par_chunks(channels)
+            .map(|r| {
+                let n = r.iter().map(|x| x * x).sum::<f32>().sqrt();
+                if n > 1e-12 {
+                    1.0 / n
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        Ok(FeatureCache { geom, channels, voxels, index, sigma, feats, inv_norm })
+    }
+    pub fn len(&self) -> usize {
+        self.voxels.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.voxels.is_empty()
+    }
+    #[inline]
+    pub fn row(&self, r: usize) -> &[f32] {
+        &self.feats[r * self.channels..(r + 1) * self.channels]
+    }
+    pub fn memory_bytes(&self) -> usize {
+        self.feats.len() * 4 + self.voxels.len() * 12 + self.index.bits().words().len() * 12
+    }
+}

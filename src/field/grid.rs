@@ -1,0 +1,156 @@
+//! Channel grids: C values per grid point, stored densely over the whole grid
+//! or sparsely for the occupied voxels of a [`RankIndex`] only.
+
+use super::bitmap::RankIndex;
+use super::geom::GridGeom;
+use glam::Vec3;
+use half::f16;
+use std::sync::Arc;
+
+#[derive(Clone, Debug)]
+pub enum Layout {
+    /// Every grid point stores its channels.
+    Dense,
+    /// Only voxels set in the index store channels; sampling renormalises the
+    /// trilinear weights over the corners that are present, so values at a
+    /// surface are not blended with empty space.
+    Sparse(Arc<RankIndex>),
+}
+
+#[derive(Clone, Debug)]
+pub struct ChannelGrid {
+    pub geom: GridGeom,
+    pub channels: usize,
+    pub layout: Layout,
+    /// `slots × channels` values, channels contiguous.
+    pub data: Vec<f16>,
+}
+
+impl ChannelGrid {
+    pub fn dense(geom: GridGeom, channels: usize, data: Vec<f16>) -> Self {
+        debug_assert_eq!(data.len(), geom.len() * channels);
+        ChannelGrid { geom, channels, layout: Layout::Dense, data }
+    }
+    pub fn sparse(geom: GridGeom, channels: usize, index: Arc<RankIndex>, data: Vec<f16>) -> Self {
+        debug_assert_eq!(data.len(), index.count() * channels);
+        ChannelGrid { geom, channels, layout: Layout::Sparse(index), data }
+    }
+    /// Number of stored grid points.
+    pub fn slots(&self) -> usize {
+        self.data.len() / self.channels.max(1)
+    }
+    #[inline]
+    fn slot(&self, voxel: usize) -> Option<usize> {
+        match &self.layout {
+            Layout::Dense => Some(voxel),
+            Layout::Sparse(ix) => ix.slot(voxel),
+        }
+    }
+    /// Channels of grid point `voxel`; zeros if it is not stored.
+    pub fn at_voxel(&self, voxel: usize, out: &mut [f32]) {
+        match self.slot(voxel) {
+            Some(s) => {
+                let src = &self.data[s * self.channels..(s + 1) * self.channels];
+                for (o, v) in out.iter_mut().zip(src) {
+                    *o = v.to_f32();
+                }
+            }
+            None => out.fill(0.0),
+        }
+    }
+    /// Trilinear sample at world point `p` into `out` (len = channels).
+    /// Returns false (and zeros) outside the grid or where no corner is stored.
+    pub fn sample(&self, p: Vec3, out: &mut [f32]) -> bool {
+        out.fill(0.0);
+        let Some(c) = self.geom.corners(p) else { return false };
+        let mut wsum = 0.0;
+        for k in 0..8 {
+            let w = c.weight[k];
+            if w == 0.0 {
+                continue;
+            }
+            let Some(s) = self.slot(c.index[k]) else { continue };
+            wsum += w;
+            let src = &self.data[s * self.channels..(s + 1) * self.channels];
+            for (o, v) in out.iter_mut().zip(src) {
+                *o += w * v.to_f32();
+            }
+        }
+        if wsum <= 1e-6 {
+            out.fill(0.0);
+            return false;
+        }
+        if matches!(self.layout, Layout::Sparse(_)) {
+            let inv = 1.0 / wsum;
+            out.iter_mut().for_each(|o| *o *= inv);
+        }
+        true
+    }
+}
+
+/// Density activation applied *after* trilinear interpolation of the raw grid
+/// (as DVGO/TensoRF do). Edits act on the activated value.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum Activation {
+    /// σ = ln(1 + exp(raw + shift))
+    Softplus { shift: f32 },
+    /// σ = max(raw, 0)
+    Relu,
+}
+
+impl Activation {
+    #[inline]
+    pub fn apply(&self, raw: f32) -> f32 {
+        match *self {
+            Activation::Softplus { shift } => {
+                let x = raw + shift;
+                // Numerically stable softplus.
+                if x > 20.0 {
+                    x
+                } else {
+                    x.exp().ln_1p()
+                }
+            }
+            Activation::Relu => raw.max(0.0),
+        }
+    }
+    /// d σ / d raw at `raw` (used by training).
+    #[inline]
+    pub fn derivative(&self, raw: f32) -> f32 {
+        match *self {
+            Activation::Softplus { shift } => 1.0 / (1.0 + (-(raw + shift)).exp()),
+            Activation::Relu => (raw > 0.0) as u8 as f32,
+        }
+    }
+}
+
+/// The raw density grid (f32, dense, the field's own resolution).
+#[derive(Clone, Debug)]
+pub struct DensityGrid {
+    pub geom: GridGeom,
+    pub raw: Vec<f32>,
+    pub activation: Activation,
+}
+
+impl DensityGrid {
+    /// Activated density at a world point; 0 outside the grid.
+    #[inline]
+    pub fn sigma(&self, p: Vec3) -> f32 {
+        match self.geom.corners(p) {
+            Some(c) => {
+                let mut r = 0.0;
+                for k in 0..8 {
+                    r += c.weight[k] * self.raw[c.index[k]];
+                }
+                self.activation.apply(r)
+            }
+            None => 0.0,
+        }
+    }
+    /// Activated density at grid point `i`.
+    #[inline]
+    pub fn sigma_at(&self, i: usize) -> f32 {
+        self.activation.apply(self.raw[i])
+    }
+}

@@ -1,0 +1,460 @@
+//! Field files: one `.safetensors` per field.
+//!
+//! `__metadata__` holds `format = "isrf-field"`, `version = "1"` and `header`,
+//! a JSON [`Header`] (bounds, resolution, activation, kinds). Tensors:
+//!
+//! | name | dtype | shape |
+//! |---|---|---|
+//! | `density` | F32 | `[nz, ny, nx]` raw (pre-activation) |
+//! | `occupancy` | U8 | packed bits (x fastest, little-endian u64 words); only with sparse grids |
+//! | `app.rgb` / `app.sh` | F16 | dense `[nz, ny, nx, C]` or sparse `[occupied, C]` |
+//! | `app.vm.plane{m}`, `app.vm.line{m}`, `app.vm.basis` | F32 | `[R, nb, na]`, `[R, nc]`, `[ΣR, D]` |
+//! | `app.mlp.{i}.weight`, `app.mlp.{i}.bias` | F32 | `[out, in]`, `[out]` |
+//! | `feat.grid` | F16 | like `app.rgb` |
+//! | `feat.vm.*` | F32 | like `app.vm.*` |
+//!
+//! Reading validates the header, every resolution and the exact byte size the
+//! header implies *before* reading the tensor data, then checks every tensor's
+//! dtype and shape and that all values are finite.
+
+use super::bitmap::{Bitmap, RankIndex};
+use super::geom::{check_res, Aabb, GridGeom};
+use super::grid::{Activation, ChannelGrid, DensityGrid, Layout};
+use super::vm::{Linear, Mlp, VmGrid, MODE_AXES};
+use super::{Appearance, Features, Field};
+use crate::error::{write_atomic, Error, Result};
+use glam::Vec3;
+use half::f16;
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::io::Read;
+use std::path::Path;
+use std::sync::Arc;
+
+pub const FORMAT: &str = "isrf-field";
+pub const VERSION: u32 = 1;
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(rename_all = "lowercase")]
+pub enum LayoutKind {
+    Dense,
+    Sparse,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct ChannelHeader {
+    pub layout: LayoutKind,
+    pub resolution: [usize; 3],
+    pub channels: usize,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct VmHeader {
+    pub resolution: [usize; 3],
+    pub comps: [usize; 3],
+    pub out: usize,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct MlpHeader {
+    pub feat_pe: usize,
+    pub view_pe: usize,
+    /// `[inputs, outputs]` per layer.
+    pub layers: Vec<[usize; 2]>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum AppearanceHeader {
+    Rgb(ChannelHeader),
+    Sh2(ChannelHeader),
+    Vm { grid: VmHeader, mlp: MlpHeader },
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum FeaturesHeader {
+    Grid(ChannelHeader),
+    Vm(VmHeader),
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Header {
+    pub bounds: [[f32; 3]; 2],
+    pub resolution: [usize; 3],
+    pub activation: Activation,
+    pub appearance: AppearanceHeader,
+    pub features: Option<FeaturesHeader>,
+    /// Number of set bits in `occupancy` (sparse grids only).
+    #[serde(default)]
+    pub occupied: Option<usize>,
+}
+
+// ---------------------------------------------------------------- writing
+
+struct Out {
+    names: Vec<String>,
+    tensors: Vec<(Dtype, Vec<usize>, Vec<u8>)>,
+}
+
+impl Out {
+    fn push(&mut self, name: impl Into<String>, dtype: Dtype, shape: Vec<usize>, bytes: Vec<u8>) {
+        self.names.push(name.into());
+        self.tensors.push((dtype, shape, bytes));
+    }
+    fn channel_grid(&mut self, name: &str, g: &ChannelGrid) -> ChannelHeader {
+        let [nx, ny, nz] = g.geom.res;
+        let (layout, shape) = match g.layout {
+            Layout::Dense => (LayoutKind::Dense, vec![nz, ny, nx, g.channels]),
+            Layout::Sparse(_) => (LayoutKind::Sparse, vec![g.slots(), g.channels]),
+        };
+        self.push(name, Dtype::F16, shape, bytemuck::cast_slice(&g.data).to_vec());
+        ChannelHeader { layout, resolution: g.geom.res, channels: g.channels }
+    }
+    fn vm(&mut self, prefix: &str, v: &VmGrid) -> VmHeader {
+        for (m, &(a, b, c)) in MODE_AXES.iter().enumerate() {
+            let r = v.comps[m];
+            let res = v.geom.res;
+            self.push(format!("{prefix}.plane{m}"), Dtype::F32, vec![r, res[b], res[a]], f32_bytes(&v.planes[m]));
+            self.push(format!("{prefix}.line{m}"), Dtype::F32, vec![r, res[c]], f32_bytes(&v.lines[m]));
+        }
+        self.push(format!("{prefix}.basis"), Dtype::F32, vec![v.total_comps(), v.out], f32_bytes(&v.basis));
+        VmHeader { resolution: v.geom.res, comps: v.comps, out: v.out }
+    }
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    bytemuck::cast_slice(v).to_vec()
+}
+
+/// Serialises a field to safetensors bytes.
+pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
+    let mut out = Out { names: vec![], tensors: vec![] };
+    let [nx, ny, nz] = field.res();
+    out.push("density", Dtype::F32, vec![nz, ny, nx], f32_bytes(&field.density.raw));
+    if let Some(occ) = &field.occupancy {
+        let bytes = occ.bits().to_bytes();
+        out.push("occupancy", Dtype::U8, vec![bytes.len()], bytes);
+    }
+    let appearance = match &field.appearance {
+        Appearance::Rgb(g) => AppearanceHeader::Rgb(out.channel_grid("app.rgb", g)),
+        Appearance::Sh2(g) => AppearanceHeader::Sh2(out.channel_grid("app.sh", g)),
+        Appearance::Vm { grid, mlp } => {
+            let grid = out.vm("app.vm", grid);
+            let mut layers = vec![];
+            for (i, l) in mlp.layers.iter().enumerate() {
+                out.push(format!("app.mlp.{i}.weight"), Dtype::F32, vec![l.outputs, l.inputs], f32_bytes(&l.weight));
+                out.push(format!("app.mlp.{i}.bias"), Dtype::F32, vec![l.outputs], f32_bytes(&l.bias));
+                layers.push([l.inputs, l.outputs]);
+            }
+            AppearanceHeader::Vm { grid, mlp: MlpHeader { feat_pe: mlp.feat_pe, view_pe: mlp.view_pe, layers } }
+        }
+    };
+    let features = match &field.features {
+        Some(Features::Grid(g)) => Some(FeaturesHeader::Grid(out.channel_grid("feat.grid", g))),
+        Some(Features::Vm(v)) => Some(FeaturesHeader::Vm(out.vm("feat.vm", v))),
+        None => None,
+    };
+    let b = field.bounds();
+    let header = Header {
+        bounds: [b.min.to_array(), b.max.to_array()],
+        resolution: field.res(),
+        activation: field.density.activation,
+        appearance,
+        features,
+        occupied: field.occupancy.as_ref().map(|o| o.count()),
+    };
+    let mut meta = HashMap::new();
+    meta.insert("format".to_string(), FORMAT.to_string());
+    meta.insert("version".to_string(), VERSION.to_string());
+    meta.insert("header".to_string(), serde_json::to_string(&header).expect("header serialises"));
+    serialize(&out.names, &out.tensors, meta)
+}
+
+/// Serialises named tensors with metadata (shared by every isrf file kind).
+pub fn serialize(names: &[String], tensors: &[(Dtype, Vec<usize>, Vec<u8>)], meta: HashMap<String, String>) -> Result<Vec<u8>> {
+    let views: Vec<(String, TensorView)> = names
+        .iter()
+        .zip(tensors)
+        .map(|(n, (d, s, b))| TensorView::new(*d, s.clone(), b).map(|v| (n.clone(), v)))
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| Error::invalid(format!("cannot build tensor: {e}")))?;
+    safetensors::serialize(views, Some(meta)).map_err(|e| Error::invalid(format!("cannot serialise: {e}")))
+}
+
+/// Writes a field atomically.
+pub fn save(field: &Field, path: &Path) -> Result<()> {
+    write_atomic(path, &to_bytes(field)?)
+}
+
+// ---------------------------------------------------------------- reading
+
+/// Reads only the safetensors header of `path`: its `__metadata__` map and the
+/// file's total length. Rejects files too short to hold the header they claim.
+pub fn read_metadata(path: &Path) -> Result<(HashMap<String, String>, u64)> {
+    let bad = |r: String| Error::bad_file(path, r);
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = f.metadata().map_err(|e| Error::io(path, e))?.len();
+    if len < 8 {
+        return Err(bad(format!("truncated: {len} bytes is too short for a safetensors file")));
+    }
+    let mut n = [0u8; 8];
+    f.read_exact(&mut n).map_err(|e| Error::io(path, e))?;
+    let n = u64::from_le_bytes(n);
+    if n > 100_000_000 || 8 + n > len {
+        return Err(bad(format!("corrupt or truncated: header length {n} does not fit in a {len}-byte file")));
+    }
+    let mut h = vec![0u8; n as usize];
+    f.read_exact(&mut h).map_err(|e| Error::io(path, e))?;
+    let v: serde_json::Value = serde_json::from_slice(&h).map_err(|e| bad(format!("corrupt safetensors header: {e}")))?;
+    let meta = v
+        .get("__metadata__")
+        .and_then(|m| serde_json::from_value::<HashMap<String, String>>(m.clone()).ok())
+        .unwrap_or_default();
+    Ok((meta, len))
+}
+
+/// Checks `format` and `version` in a metadata map.
+pub fn check_format(meta: &HashMap<String, String>, format: &str, version: u32, path: &Path) -> Result<()> {
+    match meta.get("format") {
+        Some(f) if f == format => {}
+        Some(f) => return Err(Error::bad_file(path, format!("this is a '{f}' file, not an '{format}' file"))),
+        None => return Err(Error::bad_file(path, format!("not an {format} file (no 'format' in the safetensors metadata)"))),
+    }
+    match meta.get("version").and_then(|v| v.parse::<u32>().ok()) {
+        Some(v) if v <= version => Ok(()),
+        Some(v) => Err(Error::bad_file(path, format!("{format} version {v} is newer than this isrf reads ({version})"))),
+        None => Err(Error::bad_file(path, "missing or malformed 'version' in metadata")),
+    }
+}
+
+/// Reads a whole safetensors file after its header has been validated.
+pub fn read_all(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| Error::io(path, e))
+}
+
+pub fn parse<'a>(bytes: &'a [u8], path: &Path) -> Result<SafeTensors<'a>> {
+    SafeTensors::deserialize(bytes).map_err(|e| Error::bad_file(path, format!("corrupt or truncated safetensors data: {e}")))
+}
+
+/// Typed tensor access with dtype, shape and finiteness checks; every error
+/// names the file and the tensor.
+pub struct Tensors<'a> {
+    pub st: SafeTensors<'a>,
+    pub path: &'a Path,
+}
+
+impl<'a> Tensors<'a> {
+    fn view(&self, name: &str, dtype: Dtype, shape: &[usize]) -> Result<TensorView<'a>> {
+        let t = self.st.tensor(name).map_err(|_| Error::bad_file(self.path, format!("missing tensor '{name}'")))?;
+        if t.dtype() != dtype {
+            return Err(Error::bad_file(self.path, format!("tensor '{name}' has dtype {:?}, expected {dtype:?}", t.dtype())));
+        }
+        if t.shape() != shape {
+            return Err(Error::bad_file(self.path, format!("tensor '{name}' has shape {:?}, expected {shape:?}", t.shape())));
+        }
+        Ok(t)
+    }
+    pub fn has(&self, name: &str) -> bool {
+        self.st.tensor(name).is_ok()
+    }
+    pub fn f32(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
+        let t = self.view(name, Dtype::F32, shape)?;
+        let v: Vec<f32> = t.data().chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();
+        self.finite(name, v.iter().copied())?;
+        Ok(v)
+    }
+    pub fn f16(&self, name: &str, shape: &[usize]) -> Result<Vec<f16>> {
+        let t = self.view(name, Dtype::F16, shape)?;
+        let v: Vec<f16> = t.data().chunks_exact(2).map(|c| f16::from_le_bytes([c[0], c[1]])).collect();
+        self.finite(name, v.iter().map(|x| x.to_f32()))?;
+        Ok(v)
+    }
+    pub fn u8(&self, name: &str, shape: &[usize]) -> Result<Vec<u8>> {
+        Ok(self.view(name, Dtype::U8, shape)?.data().to_vec())
+    }
+    fn finite(&self, name: &str, mut v: impl Iterator<Item = f32>) -> Result<()> {
+        if let Some(pos) = v.position(|x| !x.is_finite()) {
+            return Err(Error::bad_file(self.path, format!("tensor '{name}' holds a non-finite value (NaN or infinity) at element {pos}")));
+        }
+        Ok(())
+    }
+}
+
+/// Parses and validates the header in a field file's metadata.
+pub fn read_header(path: &Path) -> Result<(Header, u64)> {
+    let (meta, len) = read_metadata(path)?;
+    check_format(&meta, FORMAT, VERSION, path)?;
+    let h = meta.get("header").ok_or_else(|| Error::bad_file(path, "missing 'header' in metadata"))?;
+    let header: Header = serde_json::from_str(h).map_err(|e| Error::bad_file(path, format!("malformed field header: {e}")))?;
+    validate_header(&header).map_err(|e| Error::bad_file(path, e.to_string()))?;
+    let expected = expected_data_bytes(&header);
+    // The data section must at least hold what the header implies.
+    if expected > len {
+        return Err(Error::bad_file(path, format!("truncated: the header implies {expected} bytes of tensors but the file has {len} bytes")));
+    }
+    Ok((header, len))
+}
+
+fn validate_header(h: &Header) -> Result<()> {
+    let b = Aabb::new(Vec3::from(h.bounds[0]), Vec3::from(h.bounds[1]));
+    crate::ensure!(b.is_valid(), "bounds {:?} are not a finite box with max > min", h.bounds);
+    check_res(h.resolution, "density grid")?;
+    let chan = |c: &ChannelHeader, what: &str| -> Result<()> {
+        check_res(c.resolution, what)?;
+        crate::ensure!(c.channels >= 1 && c.channels <= 4096, "{what}: {} channels is out of range", c.channels);
+        if c.layout == LayoutKind::Sparse {
+            crate::ensure!(c.resolution == h.resolution, "{what}: sparse grids must have the density resolution");
+            crate::ensure!(h.occupied.is_some(), "{what} is sparse but the header has no occupied count");
+        }
+        Ok(())
+    };
+    let vm = |v: &VmHeader, what: &str| -> Result<()> {
+        check_res(v.resolution, what)?;
+        crate::ensure!(v.comps.iter().all(|&c| c <= 1024) && v.out >= 1 && v.out <= 4096, "{what}: component or channel count out of range");
+        Ok(())
+    };
+    match &h.appearance {
+        AppearanceHeader::Rgb(c) => {
+            chan(c, "appearance")?;
+            crate::ensure!(c.channels == 3, "rgb appearance must have 3 channels, not {}", c.channels);
+        }
+        AppearanceHeader::Sh2(c) => {
+            chan(c, "appearance")?;
+            crate::ensure!(c.channels == 27, "sh2 appearance must have 27 channels, not {}", c.channels);
+        }
+        AppearanceHeader::Vm { grid, mlp } => {
+            vm(grid, "appearance")?;
+            crate::ensure!(!mlp.layers.is_empty() && mlp.layers.len() <= 16, "appearance MLP must have 1..16 layers");
+            let inputs = grid.out + 3 + 2 * grid.out * mlp.feat_pe + 6 * mlp.view_pe;
+            crate::ensure!(mlp.layers[0][0] == inputs, "appearance MLP takes {} inputs, the encoding gives {inputs}", mlp.layers[0][0]);
+            for w in mlp.layers.windows(2) {
+                crate::ensure!(w[0][1] == w[1][0], "appearance MLP layer sizes do not chain: {:?}", mlp.layers);
+            }
+            crate::ensure!(mlp.layers.last().unwrap()[1] == 3, "appearance MLP must output 3 values");
+            crate::ensure!(mlp.layers.iter().all(|l| l[0] * l[1] <= 1 << 24), "appearance MLP layer is absurdly large");
+            crate::ensure!(mlp.feat_pe <= 16 && mlp.view_pe <= 16, "positional encoding frequencies out of range");
+        }
+    }
+    match &h.features {
+        Some(FeaturesHeader::Grid(c)) => chan(c, "features")?,
+        Some(FeaturesHeader::Vm(v)) => vm(v, "features")?,
+        None => {}
+    }
+    if let Some(o) = h.occupied {
+        let n: usize = h.resolution.iter().product();
+        crate::ensure!(o <= n, "occupied count {o} exceeds the grid size {n}");
+    }
+    Ok(())
+}
+
+fn channel_bytes(c: &ChannelHeader, occupied: usize) -> u64 {
+    let slots = match c.layout {
+        LayoutKind::Dense => c.resolution.iter().product::<usize>(),
+        LayoutKind::Sparse => occupied,
+    };
+    (slots * c.channels * 2) as u64
+}
+
+fn vm_bytes(v: &VmHeader) -> u64 {
+    let r = v.resolution;
+    let mut n = 0;
+    for (m, &(a, b, c)) in MODE_AXES.iter().enumerate() {
+        n += v.comps[m] * (r[a] * r[b] + r[c]);
+    }
+    ((n + v.comps.iter().sum::<usize>() * v.out) * 4) as u64
+}
+
+/// Lower bound on the tensor bytes a header implies.
+fn expected_data_bytes(h: &Header) -> u64 {
+    let occ = h.occupied.unwrap_or(0);
+    let mut n = (h.resolution.iter().product::<usize>() * 4) as u64;
+    n += match &h.appearance {
+        AppearanceHeader::Rgb(c) | AppearanceHeader::Sh2(c) => channel_bytes(c, occ),
+        AppearanceHeader::Vm { grid, mlp } => vm_bytes(grid) + mlp.layers.iter().map(|l| ((l[0] + 1) * l[1] * 4) as u64).sum::<u64>(),
+    };
+    n += match &h.features {
+        Some(FeaturesHeader::Grid(c)) => channel_bytes(c, occ),
+        Some(FeaturesHeader::Vm(v)) => vm_bytes(v),
+        None => 0,
+    };
+    n
+}
+
+fn read_channel_grid(t: &Tensors, name: &str, c: &ChannelHeader, bounds: Aabb, occ: &Option<Arc<RankIndex>>) -> Result<ChannelGrid> {
+    let geom = GridGeom::new(bounds, c.resolution);
+    let [nx, ny, nz] = c.resolution;
+    Ok(match c.layout {
+        LayoutKind::Dense => ChannelGrid::dense(geom, c.channels, t.f16(name, &[nz, ny, nx, c.channels])?),
+        LayoutKind::Sparse => {
+            let ix = occ.clone().ok_or_else(|| Error::bad_file(t.path, format!("'{name}' is sparse but there is no occupancy")))?;
+            ChannelGrid::sparse(geom, c.channels, ix.clone(), t.f16(name, &[ix.count(), c.channels])?)
+        }
+    })
+}
+
+fn read_vm(t: &Tensors, prefix: &str, v: &VmHeader, bounds: Aabb) -> Result<VmGrid> {
+    let r = v.resolution;
+    let mut planes: [Vec<f32>; 3] = Default::default();
+    let mut lines: [Vec<f32>; 3] = Default::default();
+    for (m, &(a, b, c)) in MODE_AXES.iter().enumerate() {
+        planes[m] = t.f32(&format!("{prefix}.plane{m}"), &[v.comps[m], r[b], r[a]])?;
+        lines[m] = t.f32(&format!("{prefix}.line{m}"), &[v.comps[m], r[c]])?;
+    }
+    let total = v.comps.iter().sum();
+    let basis = t.f32(&format!("{prefix}.basis"), &[total, v.out])?;
+    Ok(VmGrid { geom: GridGeom::new(bounds, r), comps: v.comps, planes, lines, basis, out: v.out })
+}
+
+/// Loads a field file, validating everything (see the module docs).
+pub fn load(path: &Path) -> Result<Field> {
+    let (h, _) = read_header(path)?;
+    let bytes = read_all(path)?;
+    let t = Tensors { st: parse(&bytes, path)?, path };
+    let bounds = Aabb::new(Vec3::from(h.bounds[0]), Vec3::from(h.bounds[1]));
+    let [nx, ny, nz] = h.resolution;
+    let geom = GridGeom::new(bounds, h.resolution);
+    let raw = t.f32("density", &[nz, ny, nx])?;
+    let occupancy = match h.occupied {
+        Some(count) => {
+            let n = nx * ny * nz;
+            let bytes = t.u8("occupancy", &[n.div_ceil(64) * 8])?;
+            let ix = RankIndex::new(Bitmap::from_bytes(h.resolution, &bytes)?);
+            if ix.count() != count {
+                return Err(Error::bad_file(path, format!("occupancy has {} voxels set, the header says {count}", ix.count())));
+            }
+            Some(Arc::new(ix))
+        }
+        None => None,
+    };
+    let appearance = match &h.appearance {
+        AppearanceHeader::Rgb(c) => Appearance::Rgb(read_channel_grid(&t, "app.rgb", c, bounds, &occupancy)?),
+        AppearanceHeader::Sh2(c) => Appearance::Sh2(read_channel_grid(&t, "app.sh", c, bounds, &occupancy)?),
+        AppearanceHeader::Vm { grid, mlp } => {
+            let grid = read_vm(&t, "app.vm", grid, bounds)?;
+            let mut layers = vec![];
+            for (i, &[inputs, outputs]) in mlp.layers.iter().enumerate() {
+                let weight = t.f32(&format!("app.mlp.{i}.weight"), &[outputs, inputs])?;
+                let bias = t.f32(&format!("app.mlp.{i}.bias"), &[outputs])?;
+                layers.push(Linear { inputs, outputs, weight, bias });
+            }
+            Appearance::Vm { grid, mlp: Mlp { feat_pe: mlp.feat_pe, view_pe: mlp.view_pe, layers } }
+        }
+    };
+    let features = match &h.features {
+        Some(FeaturesHeader::Grid(c)) => Some(Features::Grid(read_channel_grid(&t, "feat.grid", c, bounds, &occupancy)?)),
+        Some(FeaturesHeader::Vm(v)) => Some(Features::Vm(read_vm(&t, "feat.vm", v, bounds)?)),
+        None => None,
+    };
+    Ok(Field::new(DensityGrid { geom, raw, activation: h.activation }, appearance, features, occupancy))
+}
+
+impl Field {
+    pub fn load(path: &Path) -> Result<Field> {
+        load(path)
+    }
+    pub fn save(&self, path: &Path) -> Result<()> {
+        save(self, path)
+    }
+}

@@ -1,0 +1,184 @@
+//! The radiance field: a dense density grid, an appearance model and optional
+//! semantic features over one world-space box, plus trilinear sampling and a
+//! cache of per-voxel features for occupied voxels.
+
+pub mod bitmap;
+pub mod cache;
+pub mod geom;
+pub mod grid;
+pub mod io;
+pub mod sh;
+pub mod vm;
+
+pub use bitmap::{Bitmap, RankIndex};
+pub use cache::FeatureCache;
+pub use geom::{Aabb, GridGeom};
+pub use grid::{Activation, ChannelGrid, DensityGrid, Layout};
+pub use vm::{Linear, Mlp, VmGrid};
+
+use glam::Vec3;
+use std::sync::{Arc, OnceLock};
+
+/// How colour is stored.
+#[derive(Clone, Debug)]
+pub enum Appearance {
+    /// 3 channels, colour = clamp(value, 0, 1), view independent.
+    Rgb(ChannelGrid),
+    /// 27 channels of degree-2 spherical harmonics, `[r0..r8, g0..g8, b0..b8]`.
+    Sh2(ChannelGrid),
+    /// TensoRF VM components → basis → MLP with the view direction.
+    Vm { grid: VmGrid, mlp: Mlp },
+}
+
+/// Semantic (distilled) features; view independent.
+#[derive(Clone, Debug)]
+pub enum Features {
+    Grid(ChannelGrid),
+    Vm(VmGrid),
+}
+
+impl Features {
+    pub fn channels(&self) -> usize {
+        match self {
+            Features::Grid(g) => g.channels,
+            Features::Vm(v) => v.out,
+        }
+    }
+}
+
+#[derive(Debug)]
+pub struct Field {
+    pub density: DensityGrid,
+    pub appearance: Appearance,
+    pub features: Option<Features>,
+    /// Rank index over voxels that sparse grids store; present iff some grid
+    /// uses [`Layout::Sparse`] (they all share it).
+    pub occupancy: Option<Arc<RankIndex>>,
+    cache: OnceLock<Arc<FeatureCache>>,
+}
+
+impl Clone for Field {
+    fn clone(&self) -> Self {
+        Field {
+            density: self.density.clone(),
+            appearance: self.appearance.clone(),
+            features: self.features.clone(),
+            occupancy: self.occupancy.clone(),
+            cache: OnceLock::new(),
+        }
+    }
+}
+
+impl Field {
+    pub fn new(
+        density: DensityGrid,
+        appearance: Appearance,
+        features: Option<Features>,
+        occupancy: Option<Arc<RankIndex>>,
+    ) -> Self {
+        Field { density, appearance, features, occupancy, cache: OnceLock::new() }
+    }
+    pub fn bounds(&self) -> Aabb {
+        self.density.geom.bounds
+    }
+    pub fn geom(&self) -> GridGeom {
+        self.density.geom
+    }
+    pub fn res(&self) -> [usize; 3] {
+        self.density.geom.res
+    }
+    pub fn feature_channels(&self) -> usize {
+        self.features.as_ref().map_or(0, Features::channels)
+    }
+    /// Activated density at a world point (field-local coordinates).
+    #[inline]
+    pub fn sigma(&self, p: Vec3) -> f32 {
+        self.density.sigma(p)
+    }
+    /// A sampler with scratch buffers, one per thread, so that sampling colour
+    /// and features never allocates.
+    pub fn sampler(&self) -> Sampler<'_> {
+        let comps = match (&self.appearance, &self.features) {
+            (Appearance::Vm { grid, .. }, Some(Features::Vm(f))) => grid.total_comps().max(f.total_comps()),
+            (Appearance::Vm { grid, .. }, _) => grid.total_comps(),
+            (_, Some(Features::Vm(f))) => f.total_comps(),
+            _ => 0,
+        };
+        let chan = match &self.appearance {
+            Appearance::Rgb(_) => 3,
+            Appearance::Sh2(_) => 27,
+            Appearance::Vm { grid, .. } => grid.out,
+        };
+        Sampler {
+            field: self,
+            comps: vec![0.0; comps],
+            chan: vec![0.0; chan],
+            mlp: Vec::with_capacity(1024),
+        }
+    }
+    /// Per-voxel features of occupied voxels (σ > [`cache::OCCUPIED_FLOOR`]),
+    /// computed on first use and then shared.
+    pub fn feature_cache(&self) -> crate::error::Result<Arc<FeatureCache>> {
+        if let Some(c) = self.cache.get() {
+            return Ok(c.clone());
+        }
+        let c = Arc::new(FeatureCache::build(self)?);
+        Ok(self.cache.get_or_init(|| c).clone())
+    }
+    /// Approximate memory held by the grids, in bytes.
+    pub fn memory_bytes(&self) -> usize {
+        let ch = |g: &ChannelGrid| g.data.len() * 2;
+        let vm = |v: &VmGrid| 4 * (v.planes.iter().map(Vec::len).sum::<usize>() + v.lines.iter().map(Vec::len).sum::<usize>() + v.basis.len());
+        let mut n = self.density.raw.len() * 4;
+        n += match &self.appearance {
+            Appearance::Rgb(g) | Appearance::Sh2(g) => ch(g),
+            Appearance::Vm { grid, mlp } => vm(grid) + mlp.layers.iter().map(|l| 4 * (l.weight.len() + l.bias.len())).sum::<usize>(),
+        };
+        n += match &self.features {
+            Some(Features::Grid(g)) => ch(g),
+            Some(Features::Vm(v)) => vm(v),
+            None => 0,
+        };
+        n + self.occupancy.as_ref().map_or(0, |o| o.bits().words().len() * 12)
+    }
+}
+
+pub struct Sampler<'a> {
+    pub field: &'a Field,
+    comps: Vec<f32>,
+    chan: Vec<f32>,
+    mlp: Vec<f32>,
+}
+
+impl Sampler<'_> {
+    /// Colour in [0, 1]³ at `p` seen along unit direction `dir` (field-local).
+    pub fn color(&mut self, p: Vec3, dir: Vec3) -> Vec3 {
+        match &self.field.appearance {
+            Appearance::Rgb(g) => {
+                g.sample(p, &mut self.chan[..3]);
+                Vec3::new(self.chan[0], self.chan[1], self.chan[2]).clamp(Vec3::ZERO, Vec3::ONE)
+            }
+            Appearance::Sh2(g) => {
+                g.sample(p, &mut self.chan[..27]);
+                sh::color(&self.chan, dir)
+            }
+            Appearance::Vm { grid, mlp } => {
+                grid.sample(p, &mut self.comps, &mut self.chan);
+                mlp.eval(&self.chan, dir, &mut self.mlp)
+            }
+        }
+    }
+    /// Semantic features at `p` into `out` (len = feature channels); zeros if
+    /// the field has none or `p` is outside.
+    pub fn features(&mut self, p: Vec3, out: &mut [f32]) {
+        match &self.field.features {
+            Some(Features::Grid(g)) => {
+                g.sample(p, out);
+            }
+            Some(Features::Vm(v)) => {
+                v.sample(p, &mut self.comps, out);
+            }
+            None => out.fill(0.0),
+        }
+    }
+}
