@@ -1,3 +1,31 @@
+//! The `isrf` command line. Each subcommand lives in its own file under
+//! `src/cli/`; this file only declares them. Errors from the library reach
+//! the user as one line through `anyhow`.
+
+mod cli;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "isrf", version, about = "Segment, edit and composite radiance fields with brush strokes")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Print a human summary of a field file (sizes, kinds, occupancy, memory).
+    Info(cli::info::Args),
+}
+
 fn main() {
-    println!("isrf");
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Info(a) => cli::info::run(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
 }

@@ -6,6 +6,9 @@
 //! poses convert with [`Camera::from_opencv`] / [`Camera::c2w_opencv`].
 //! Rays carry a unit direction, so ray parameters `t` are world distances.
 
+pub mod set;
+pub use set::{CameraFrame, CameraSet};
+
 use glam::{Affine3A, Mat3A, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 

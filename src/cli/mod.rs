@@ -1,0 +1,4 @@
+//! Subcommands of the `isrf` binary: argument structs (clap) and thin `run`
+//! functions that call the library.
+
+pub mod info;
