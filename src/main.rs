@@ -7,7 +7,11 @@ mod cli;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "isrf", version, about = "Segment, edit and composite radiance fields with brush strokes")]
+#[command(
+    name = "isrf",
+    version,
+    about = "Segment, edit and composite radiance fields with brush strokes"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -26,7 +26,14 @@ impl Intrinsics {
     /// Square pixels, principal point at the centre, horizontal field of view.
     pub fn from_fov_x(width: u32, height: u32, fov_x: f32) -> Self {
         let f = 0.5 * width as f32 / (0.5 * fov_x).tan();
-        Intrinsics { width, height, fx: f, fy: f, cx: 0.5 * width as f32, cy: 0.5 * height as f32 }
+        Intrinsics {
+            width,
+            height,
+            fx: f,
+            fy: f,
+            cx: 0.5 * width as f32,
+            cy: 0.5 * height as f32,
+        }
     }
     /// The same camera at 1/`factor` resolution.
     pub fn downscaled(&self, factor: u32) -> Self {
@@ -81,7 +88,10 @@ impl Camera {
     }
     /// From an OpenCV camera-to-world pose (x right, y down, z forward).
     pub fn from_opencv(intrinsics: Intrinsics, c2w_cv: Affine3A) -> Self {
-        Camera { intrinsics, c2w: c2w_cv * flip_yz() }
+        Camera {
+            intrinsics,
+            c2w: c2w_cv * flip_yz(),
+        }
     }
     /// This pose in the OpenCV convention.
     pub fn c2w_opencv(&self) -> Affine3A {
@@ -99,7 +109,10 @@ impl Camera {
         let k = &self.intrinsics;
         let d_cam = Vec3::new((u - k.cx) / k.fx, -(v - k.cy) / k.fy, -1.0);
         let dir = (Mat3A::from(self.c2w.matrix3) * d_cam).normalize();
-        Ray { origin: self.position(), dir }
+        Ray {
+            origin: self.position(),
+            dir,
+        }
     }
     /// Ray through the centre of pixel (x, y).
     pub fn pixel_ray(&self, x: u32, y: u32) -> Ray {
@@ -117,6 +130,9 @@ impl Camera {
         Some((Vec2::new(k.fx * q.x / z + k.cx, -k.fy * q.y / z + k.cy), z))
     }
     pub fn downscaled(&self, factor: u32) -> Self {
-        Camera { intrinsics: self.intrinsics.downscaled(factor), c2w: self.c2w }
+        Camera {
+            intrinsics: self.intrinsics.downscaled(factor),
+            c2w: self.c2w,
+        }
     }
 }

@@ -19,7 +19,9 @@ impl CameraFrame {
     /// Base name of `file_path` without extension (`./train/r_0.png` → `r_0`).
     pub fn base_name(&self) -> String {
         let p = Path::new(&self.name);
-        p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| self.name.clone())
+        p.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| self.name.clone())
     }
 }
 
@@ -63,7 +65,12 @@ struct JsonFrameOut {
 /// Rows of a 4×4 matrix (JSON `transform_matrix` is row-major).
 pub fn affine_to_rows(a: &Affine3A) -> [[f32; 4]; 4] {
     let m = Mat4::from(*a).transpose();
-    [m.x_axis.to_array(), m.y_axis.to_array(), m.z_axis.to_array(), m.w_axis.to_array()]
+    [
+        m.x_axis.to_array(),
+        m.y_axis.to_array(),
+        m.z_axis.to_array(),
+        m.w_axis.to_array(),
+    ]
 }
 
 impl CameraSet {
@@ -73,9 +80,12 @@ impl CameraSet {
         let frames = (0..n)
             .map(|i| {
                 let a = std::f32::consts::TAU * i as f32 / n as f32;
-                let eye = center
-                    + radius * Vec3::new(elevation.cos() * a.sin(), elevation.sin(), elevation.cos() * a.cos());
-                CameraFrame { name: format!("./orbit/frame_{i:03}"), camera: Camera::look_at(intrinsics, eye, center, Vec3::Y) }
+                let eye =
+                    center + radius * Vec3::new(elevation.cos() * a.sin(), elevation.sin(), elevation.cos() * a.cos());
+                CameraFrame {
+                    name: format!("./orbit/frame_{i:03}"),
+                    camera: Camera::look_at(intrinsics, eye, center, Vec3::Y),
+                }
             })
             .collect();
         CameraSet { frames }
@@ -83,7 +93,10 @@ impl CameraSet {
     /// Writes `transforms.json` atomically. Intrinsics of the first frame are
     /// shared; frames whose intrinsics differ carry their own.
     pub fn save(&self, path: &Path) -> Result<()> {
-        let first = self.frames.first().ok_or_else(|| Error::invalid("cannot save an empty camera set"))?;
+        let first = self
+            .frames
+            .first()
+            .ok_or_else(|| Error::invalid("cannot save an empty camera set"))?;
         let k0 = first.camera.intrinsics;
         let frames = self
             .frames

@@ -15,9 +15,23 @@ pub fn run(a: Args) -> Result<()> {
     let g = field.geom();
     let b = g.bounds;
     println!("{}", a.field.display());
-    println!("  format      isrf-field v{}  ({:.1} MB on disk)", io::VERSION, len as f64 / 1e6);
-    println!("  bounds      [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}]", b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z);
-    println!("  resolution  {} x {} x {}  ({} grid points, spacing {:.4})", g.res[0], g.res[1], g.res[2], g.len(), g.spacing().x);
+    println!(
+        "  format      isrf-field v{}  ({:.1} MB on disk)",
+        io::VERSION,
+        len as f64 / 1e6
+    );
+    println!(
+        "  bounds      [{:.3}, {:.3}, {:.3}] .. [{:.3}, {:.3}, {:.3}]",
+        b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z
+    );
+    println!(
+        "  resolution  {} x {} x {}  ({} grid points, spacing {:.4})",
+        g.res[0],
+        g.res[1],
+        g.res[2],
+        g.len(),
+        g.spacing().x
+    );
     println!("  activation  {}", serde_json::to_string(&header.activation)?);
     let layout = |l: &Layout| if matches!(l, Layout::Dense) { "dense" } else { "sparse" };
     let app = match &field.appearance {
@@ -38,8 +52,15 @@ pub fn run(a: Args) -> Result<()> {
         None => "none".into(),
     };
     println!("  features    {feat}");
-    let occupied = (0..g.len()).filter(|&i| field.density.sigma_at(i) > isrf::field::cache::OCCUPIED_FLOOR).count();
-    println!("  occupancy   {} voxels with sigma > {} ({:.2} %)", occupied, isrf::field::cache::OCCUPIED_FLOOR, 100.0 * occupied as f64 / g.len() as f64);
+    let occupied = (0..g.len())
+        .filter(|&i| field.density.sigma_at(i) > isrf::field::cache::OCCUPIED_FLOOR)
+        .count();
+    println!(
+        "  occupancy   {} voxels with sigma > {} ({:.2} %)",
+        occupied,
+        isrf::field::cache::OCCUPIED_FLOOR,
+        100.0 * occupied as f64 / g.len() as f64
+    );
     println!("  memory      {:.1} MB", field.memory_bytes() as f64 / 1e6);
     Ok(())
 }

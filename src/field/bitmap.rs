@@ -17,7 +17,10 @@ pub struct Bitmap {
 impl Bitmap {
     pub fn new(res: [usize; 3]) -> Self {
         let n = res[0] * res[1] * res[2];
-        Bitmap { res, words: vec![0; n.div_ceil(64)] }
+        Bitmap {
+            res,
+            words: vec![0; n.div_ceil(64)],
+        }
     }
     /// Builds a bitmap from packed words; checks the word count.
     pub fn from_words(res: [usize; 3], words: Vec<u64>) -> Result<Self> {
@@ -123,7 +126,12 @@ impl Bitmap {
     /// Number of voxels set in both.
     pub fn intersection_count(&self, other: &Bitmap) -> Result<usize> {
         self.same_shape(other)?;
-        Ok(self.words.iter().zip(&other.words).map(|(a, b)| (a & b).count_ones() as usize).sum())
+        Ok(self
+            .words
+            .iter()
+            .zip(&other.words)
+            .map(|(a, b)| (a & b).count_ones() as usize)
+            .sum())
     }
     /// Inclusive voxel bounding box `(min, max)` of the set voxels.
     pub fn bounding_box(&self) -> Option<([usize; 3], [usize; 3])> {
@@ -155,8 +163,15 @@ impl Bitmap {
         bytemuck::cast_slice(&self.words).to_vec()
     }
     pub fn from_bytes(res: [usize; 3], bytes: &[u8]) -> Result<Self> {
-        crate::ensure!(bytes.len() % 8 == 0, "bitmap byte length {} is not a multiple of 8", bytes.len());
-        let words = bytes.chunks_exact(8).map(|c| u64::from_le_bytes(c.try_into().unwrap())).collect();
+        crate::ensure!(
+            bytes.len() % 8 == 0,
+            "bitmap byte length {} is not a multiple of 8",
+            bytes.len()
+        );
+        let words = bytes
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes(c.try_into().unwrap()))
+            .collect();
         Self::from_words(res, words)
     }
 }
@@ -183,7 +198,9 @@ impl RankIndex {
         &self.bits
     }
     pub fn count(&self) -> usize {
-        self.prefix.last().map_or(0, |&p| p as usize + self.bits.words.last().unwrap().count_ones() as usize)
+        self.prefix.last().map_or(0, |&p| {
+            p as usize + self.bits.words.last().unwrap().count_ones() as usize
+        })
     }
     /// Slot of voxel `i`, or `None` when it is not set.
     #[inline]

@@ -33,7 +33,11 @@ pub struct FeatureCache {
 impl FeatureCache {
     pub fn build(field: &Field) -> Result<Self> {
         let geom = field.geom();
-        crate::ensure!(geom.len() <= u32::MAX as usize, "grid {:?} is too large to index", geom.res);
+        crate::ensure!(
+            geom.len() <= u32::MAX as usize,
+            "grid {:?} is too large to index",
+            geom.res
+        );
         let channels = field.feature_channels();
         crate::ensure!(channels > 0, "this field has no semantic features to segment with");
         let d = &field.density;
@@ -42,13 +46,16 @@ impl FeatureCache {
         let index = RankIndex::new(bits);
         let sigma: Vec<f32> = voxels.par_iter().map(|&v| d.sigma_at(v as usize)).collect();
         let mut feats = vec![0.0f32; voxels.len() * channels];
-        feats.par_chunks_mut(channels * 256).enumerate().for_each(|(chunk, out)| {
-            let mut s = field.sampler();
-            for (j, row) in out.chunks_mut(channels).enumerate() {
-                let v = voxels[chunk * 256 + j] as usize;
-                s.features(geom.point_of(v), row);
-            }
-        });
+        feats
+            .par_chunks_mut(channels * 256)
+            .enumerate()
+            .for_each(|(chunk, out)| {
+                let mut s = field.sampler();
+                for (j, row) in out.chunks_mut(channels).enumerate() {
+                    let v = voxels[chunk * 256 + j] as usize;
+                    s.features(geom.point_of(v), row);
+                }
+            });
         let inv_norm = feats
             .par_chunks(channels)
             .map(|r| {
@@ -60,7 +67,15 @@ impl FeatureCache {
                 }
             })
             .collect();
-        Ok(FeatureCache { geom, channels, voxels, index, sigma, feats, inv_norm })
+        Ok(FeatureCache {
+            geom,
+            channels,
+            voxels,
+            index,
+            sigma,
+            feats,
+            inv_norm,
+        })
     }
     pub fn len(&self) -> usize {
         self.voxels.len()

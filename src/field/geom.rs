@@ -156,7 +156,10 @@ impl GridGeom {
         let (fx, fy, fz) = (g.x - x0 as f32, g.y - y0 as f32, g.z - z0 as f32);
         let base = self.index(x0, y0, z0);
         let (sx, sy, sz) = (1, nx, nx * ny);
-        let mut c = Corners { index: [0; 8], weight: [0.0; 8] };
+        let mut c = Corners {
+            index: [0; 8],
+            weight: [0.0; 8],
+        };
         for k in 0..8 {
             let (dx, dy, dz) = (k & 1, (k >> 1) & 1, (k >> 2) & 1);
             c.index[k] = base + dx * sx + dy * sy + dz * sz;

@@ -29,11 +29,21 @@ pub struct ChannelGrid {
 impl ChannelGrid {
     pub fn dense(geom: GridGeom, channels: usize, data: Vec<f16>) -> Self {
         debug_assert_eq!(data.len(), geom.len() * channels);
-        ChannelGrid { geom, channels, layout: Layout::Dense, data }
+        ChannelGrid {
+            geom,
+            channels,
+            layout: Layout::Dense,
+            data,
+        }
     }
     pub fn sparse(geom: GridGeom, channels: usize, index: Arc<RankIndex>, data: Vec<f16>) -> Self {
         debug_assert_eq!(data.len(), index.count() * channels);
-        ChannelGrid { geom, channels, layout: Layout::Sparse(index), data }
+        ChannelGrid {
+            geom,
+            channels,
+            layout: Layout::Sparse(index),
+            data,
+        }
     }
     /// Number of stored grid points.
     pub fn slots(&self) -> usize {

@@ -110,17 +110,40 @@ impl Out {
             Layout::Sparse(_) => (LayoutKind::Sparse, vec![g.slots(), g.channels]),
         };
         self.push(name, Dtype::F16, shape, bytemuck::cast_slice(&g.data).to_vec());
-        ChannelHeader { layout, resolution: g.geom.res, channels: g.channels }
+        ChannelHeader {
+            layout,
+            resolution: g.geom.res,
+            channels: g.channels,
+        }
     }
     fn vm(&mut self, prefix: &str, v: &VmGrid) -> VmHeader {
         for (m, &(a, b, c)) in MODE_AXES.iter().enumerate() {
             let r = v.comps[m];
             let res = v.geom.res;
-            self.push(format!("{prefix}.plane{m}"), Dtype::F32, vec![r, res[b], res[a]], f32_bytes(&v.planes[m]));
-            self.push(format!("{prefix}.line{m}"), Dtype::F32, vec![r, res[c]], f32_bytes(&v.lines[m]));
+            self.push(
+                format!("{prefix}.plane{m}"),
+                Dtype::F32,
+                vec![r, res[b], res[a]],
+                f32_bytes(&v.planes[m]),
+            );
+            self.push(
+                format!("{prefix}.line{m}"),
+                Dtype::F32,
+                vec![r, res[c]],
+                f32_bytes(&v.lines[m]),
+            );
         }
-        self.push(format!("{prefix}.basis"), Dtype::F32, vec![v.total_comps(), v.out], f32_bytes(&v.basis));
-        VmHeader { resolution: v.geom.res, comps: v.comps, out: v.out }
+        self.push(
+            format!("{prefix}.basis"),
+            Dtype::F32,
+            vec![v.total_comps(), v.out],
+            f32_bytes(&v.basis),
+        );
+        VmHeader {
+            resolution: v.geom.res,
+            comps: v.comps,
+            out: v.out,
+        }
     }
 }
 
@@ -130,7 +153,10 @@ fn f32_bytes(v: &[f32]) -> Vec<u8> {
 
 /// Serialises a field to safetensors bytes.
 pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
-    let mut out = Out { names: vec![], tensors: vec![] };
+    let mut out = Out {
+        names: vec![],
+        tensors: vec![],
+    };
     let [nx, ny, nz] = field.res();
     out.push("density", Dtype::F32, vec![nz, ny, nx], f32_bytes(&field.density.raw));
     if let Some(occ) = &field.occupancy {
@@ -144,11 +170,28 @@ pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
             let grid = out.vm("app.vm", grid);
             let mut layers = vec![];
             for (i, l) in mlp.layers.iter().enumerate() {
-                out.push(format!("app.mlp.{i}.weight"), Dtype::F32, vec![l.outputs, l.inputs], f32_bytes(&l.weight));
-                out.push(format!("app.mlp.{i}.bias"), Dtype::F32, vec![l.outputs], f32_bytes(&l.bias));
+                out.push(
+                    format!("app.mlp.{i}.weight"),
+                    Dtype::F32,
+                    vec![l.outputs, l.inputs],
+                    f32_bytes(&l.weight),
+                );
+                out.push(
+                    format!("app.mlp.{i}.bias"),
+                    Dtype::F32,
+                    vec![l.outputs],
+                    f32_bytes(&l.bias),
+                );
                 layers.push([l.inputs, l.outputs]);
             }
-            AppearanceHeader::Vm { grid, mlp: MlpHeader { feat_pe: mlp.feat_pe, view_pe: mlp.view_pe, layers } }
+            AppearanceHeader::Vm {
+                grid,
+                mlp: MlpHeader {
+                    feat_pe: mlp.feat_pe,
+                    view_pe: mlp.view_pe,
+                    layers,
+                },
+            }
         }
     };
     let features = match &field.features {
@@ -168,12 +211,19 @@ pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
     let mut meta = HashMap::new();
     meta.insert("format".to_string(), FORMAT.to_string());
     meta.insert("version".to_string(), VERSION.to_string());
-    meta.insert("header".to_string(), serde_json::to_string(&header).expect("header serialises"));
+    meta.insert(
+        "header".to_string(),
+        serde_json::to_string(&header).expect("header serialises"),
+    );
     serialize(&out.names, &out.tensors, meta)
 }
 
 /// Serialises named tensors with metadata (shared by every isrf file kind).
-pub fn serialize(names: &[String], tensors: &[(Dtype, Vec<usize>, Vec<u8>)], meta: HashMap<String, String>) -> Result<Vec<u8>> {
+pub fn serialize(
+    names: &[String],
+    tensors: &[(Dtype, Vec<usize>, Vec<u8>)],
+    meta: HashMap<String, String>,
+) -> Result<Vec<u8>> {
     let views: Vec<(String, TensorView)> = names
         .iter()
         .zip(tensors)
@@ -197,17 +247,22 @@ pub fn read_metadata(path: &Path) -> Result<(HashMap<String, String>, u64)> {
     let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let len = f.metadata().map_err(|e| Error::io(path, e))?.len();
     if len < 8 {
-        return Err(bad(format!("truncated: {len} bytes is too short for a safetensors file")));
+        return Err(bad(format!(
+            "truncated: {len} bytes is too short for a safetensors file"
+        )));
     }
     let mut n = [0u8; 8];
     f.read_exact(&mut n).map_err(|e| Error::io(path, e))?;
     let n = u64::from_le_bytes(n);
     if n > 100_000_000 || 8 + n > len {
-        return Err(bad(format!("corrupt or truncated: header length {n} does not fit in a {len}-byte file")));
+        return Err(bad(format!(
+            "corrupt or truncated: header length {n} does not fit in a {len}-byte file"
+        )));
     }
     let mut h = vec![0u8; n as usize];
     f.read_exact(&mut h).map_err(|e| Error::io(path, e))?;
-    let v: serde_json::Value = serde_json::from_slice(&h).map_err(|e| bad(format!("corrupt safetensors header: {e}")))?;
+    let v: serde_json::Value =
+        serde_json::from_slice(&h).map_err(|e| bad(format!("corrupt safetensors header: {e}")))?;
     let meta = v
         .get("__metadata__")
         .and_then(|m| serde_json::from_value::<HashMap<String, String>>(m.clone()).ok())
@@ -219,12 +274,25 @@ pub fn read_metadata(path: &Path) -> Result<(HashMap<String, String>, u64)> {
 pub fn check_format(meta: &HashMap<String, String>, format: &str, version: u32, path: &Path) -> Result<()> {
     match meta.get("format") {
         Some(f) if f == format => {}
-        Some(f) => return Err(Error::bad_file(path, format!("this is a '{f}' file, not an '{format}' file"))),
-        None => return Err(Error::bad_file(path, format!("not an {format} file (no 'format' in the safetensors metadata)"))),
+        Some(f) => {
+            return Err(Error::bad_file(
+                path,
+                format!("this is a '{f}' file, not an '{format}' file"),
+            ))
+        }
+        None => {
+            return Err(Error::bad_file(
+                path,
+                format!("not an {format} file (no 'format' in the safetensors metadata)"),
+            ))
+        }
     }
     match meta.get("version").and_then(|v| v.parse::<u32>().ok()) {
         Some(v) if v <= version => Ok(()),
-        Some(v) => Err(Error::bad_file(path, format!("{format} version {v} is newer than this isrf reads ({version})"))),
+        Some(v) => Err(Error::bad_file(
+            path,
+            format!("{format} version {v} is newer than this isrf reads ({version})"),
+        )),
         None => Err(Error::bad_file(path, "missing or malformed 'version' in metadata")),
     }
 }
@@ -235,7 +303,8 @@ pub fn read_all(path: &Path) -> Result<Vec<u8>> {
 }
 
 pub fn parse<'a>(bytes: &'a [u8], path: &Path) -> Result<SafeTensors<'a>> {
-    SafeTensors::deserialize(bytes).map_err(|e| Error::bad_file(path, format!("corrupt or truncated safetensors data: {e}")))
+    SafeTensors::deserialize(bytes)
+        .map_err(|e| Error::bad_file(path, format!("corrupt or truncated safetensors data: {e}")))
 }
 
 /// Typed tensor access with dtype, shape and finiteness checks; every error
@@ -247,12 +316,21 @@ pub struct Tensors<'a> {
 
 impl<'a> Tensors<'a> {
     fn view(&self, name: &str, dtype: Dtype, shape: &[usize]) -> Result<TensorView<'a>> {
-        let t = self.st.tensor(name).map_err(|_| Error::bad_file(self.path, format!("missing tensor '{name}'")))?;
+        let t = self
+            .st
+            .tensor(name)
+            .map_err(|_| Error::bad_file(self.path, format!("missing tensor '{name}'")))?;
         if t.dtype() != dtype {
-            return Err(Error::bad_file(self.path, format!("tensor '{name}' has dtype {:?}, expected {dtype:?}", t.dtype())));
+            return Err(Error::bad_file(
+                self.path,
+                format!("tensor '{name}' has dtype {:?}, expected {dtype:?}", t.dtype()),
+            ));
         }
         if t.shape() != shape {
-            return Err(Error::bad_file(self.path, format!("tensor '{name}' has shape {:?}, expected {shape:?}", t.shape())));
+            return Err(Error::bad_file(
+                self.path,
+                format!("tensor '{name}' has shape {:?}, expected {shape:?}", t.shape()),
+            ));
         }
         Ok(t)
     }
@@ -261,13 +339,21 @@ impl<'a> Tensors<'a> {
     }
     pub fn f32(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
         let t = self.view(name, Dtype::F32, shape)?;
-        let v: Vec<f32> = t.data().chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();
+        let v: Vec<f32> = t
+            .data()
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
         self.finite(name, v.iter().copied())?;
         Ok(v)
     }
     pub fn f16(&self, name: &str, shape: &[usize]) -> Result<Vec<f16>> {
         let t = self.view(name, Dtype::F16, shape)?;
-        let v: Vec<f16> = t.data().chunks_exact(2).map(|c| f16::from_le_bytes([c[0], c[1]])).collect();
+        let v: Vec<f16> = t
+            .data()
+            .chunks_exact(2)
+            .map(|c| f16::from_le_bytes([c[0], c[1]]))
+            .collect();
         self.finite(name, v.iter().map(|x| x.to_f32()))?;
         Ok(v)
     }
@@ -276,7 +362,10 @@ impl<'a> Tensors<'a> {
     }
     fn finite(&self, name: &str, mut v: impl Iterator<Item = f32>) -> Result<()> {
         if let Some(pos) = v.position(|x| !x.is_finite()) {
-            return Err(Error::bad_file(self.path, format!("tensor '{name}' holds a non-finite value (NaN or infinity) at element {pos}")));
+            return Err(Error::bad_file(
+                self.path,
+                format!("tensor '{name}' holds a non-finite value (NaN or infinity) at element {pos}"),
+            ));
         }
         Ok(())
     }
@@ -286,55 +375,106 @@ impl<'a> Tensors<'a> {
 pub fn read_header(path: &Path) -> Result<(Header, u64)> {
     let (meta, len) = read_metadata(path)?;
     check_format(&meta, FORMAT, VERSION, path)?;
-    let h = meta.get("header").ok_or_else(|| Error::bad_file(path, "missing 'header' in metadata"))?;
-    let header: Header = serde_json::from_str(h).map_err(|e| Error::bad_file(path, format!("malformed field header: {e}")))?;
+    let h = meta
+        .get("header")
+        .ok_or_else(|| Error::bad_file(path, "missing 'header' in metadata"))?;
+    let header: Header =
+        serde_json::from_str(h).map_err(|e| Error::bad_file(path, format!("malformed field header: {e}")))?;
     validate_header(&header).map_err(|e| Error::bad_file(path, e.to_string()))?;
     let expected = expected_data_bytes(&header);
     // The data section must at least hold what the header implies.
     if expected > len {
-        return Err(Error::bad_file(path, format!("truncated: the header implies {expected} bytes of tensors but the file has {len} bytes")));
+        return Err(Error::bad_file(
+            path,
+            format!("truncated: the header implies {expected} bytes of tensors but the file has {len} bytes"),
+        ));
     }
     Ok((header, len))
 }
 
 fn validate_header(h: &Header) -> Result<()> {
     let b = Aabb::new(Vec3::from(h.bounds[0]), Vec3::from(h.bounds[1]));
-    crate::ensure!(b.is_valid(), "bounds {:?} are not a finite box with max > min", h.bounds);
+    crate::ensure!(
+        b.is_valid(),
+        "bounds {:?} are not a finite box with max > min",
+        h.bounds
+    );
     check_res(h.resolution, "density grid")?;
     let chan = |c: &ChannelHeader, what: &str| -> Result<()> {
         check_res(c.resolution, what)?;
-        crate::ensure!(c.channels >= 1 && c.channels <= 4096, "{what}: {} channels is out of range", c.channels);
+        crate::ensure!(
+            c.channels >= 1 && c.channels <= 4096,
+            "{what}: {} channels is out of range",
+            c.channels
+        );
         if c.layout == LayoutKind::Sparse {
-            crate::ensure!(c.resolution == h.resolution, "{what}: sparse grids must have the density resolution");
-            crate::ensure!(h.occupied.is_some(), "{what} is sparse but the header has no occupied count");
+            crate::ensure!(
+                c.resolution == h.resolution,
+                "{what}: sparse grids must have the density resolution"
+            );
+            crate::ensure!(
+                h.occupied.is_some(),
+                "{what} is sparse but the header has no occupied count"
+            );
         }
         Ok(())
     };
     let vm = |v: &VmHeader, what: &str| -> Result<()> {
         check_res(v.resolution, what)?;
-        crate::ensure!(v.comps.iter().all(|&c| c <= 1024) && v.out >= 1 && v.out <= 4096, "{what}: component or channel count out of range");
+        crate::ensure!(
+            v.comps.iter().all(|&c| c <= 1024) && v.out >= 1 && v.out <= 4096,
+            "{what}: component or channel count out of range"
+        );
         Ok(())
     };
     match &h.appearance {
         AppearanceHeader::Rgb(c) => {
             chan(c, "appearance")?;
-            crate::ensure!(c.channels == 3, "rgb appearance must have 3 channels, not {}", c.channels);
+            crate::ensure!(
+                c.channels == 3,
+                "rgb appearance must have 3 channels, not {}",
+                c.channels
+            );
         }
         AppearanceHeader::Sh2(c) => {
             chan(c, "appearance")?;
-            crate::ensure!(c.channels == 27, "sh2 appearance must have 27 channels, not {}", c.channels);
+            crate::ensure!(
+                c.channels == 27,
+                "sh2 appearance must have 27 channels, not {}",
+                c.channels
+            );
         }
         AppearanceHeader::Vm { grid, mlp } => {
             vm(grid, "appearance")?;
-            crate::ensure!(!mlp.layers.is_empty() && mlp.layers.len() <= 16, "appearance MLP must have 1..16 layers");
+            crate::ensure!(
+                !mlp.layers.is_empty() && mlp.layers.len() <= 16,
+                "appearance MLP must have 1..16 layers"
+            );
             let inputs = grid.out + 3 + 2 * grid.out * mlp.feat_pe + 6 * mlp.view_pe;
-            crate::ensure!(mlp.layers[0][0] == inputs, "appearance MLP takes {} inputs, the encoding gives {inputs}", mlp.layers[0][0]);
+            crate::ensure!(
+                mlp.layers[0][0] == inputs,
+                "appearance MLP takes {} inputs, the encoding gives {inputs}",
+                mlp.layers[0][0]
+            );
             for w in mlp.layers.windows(2) {
-                crate::ensure!(w[0][1] == w[1][0], "appearance MLP layer sizes do not chain: {:?}", mlp.layers);
+                crate::ensure!(
+                    w[0][1] == w[1][0],
+                    "appearance MLP layer sizes do not chain: {:?}",
+                    mlp.layers
+                );
             }
-            crate::ensure!(mlp.layers.last().unwrap()[1] == 3, "appearance MLP must output 3 values");
-            crate::ensure!(mlp.layers.iter().all(|l| l[0] * l[1] <= 1 << 24), "appearance MLP layer is absurdly large");
-            crate::ensure!(mlp.feat_pe <= 16 && mlp.view_pe <= 16, "positional encoding frequencies out of range");
+            crate::ensure!(
+                mlp.layers.last().unwrap()[1] == 3,
+                "appearance MLP must output 3 values"
+            );
+            crate::ensure!(
+                mlp.layers.iter().all(|l| l[0] * l[1] <= 1 << 24),
+                "appearance MLP layer is absurdly large"
+            );
+            crate::ensure!(
+                mlp.feat_pe <= 16 && mlp.view_pe <= 16,
+                "positional encoding frequencies out of range"
+            );
         }
     }
     match &h.features {
@@ -372,7 +512,9 @@ fn expected_data_bytes(h: &Header) -> u64 {
     let mut n = (h.resolution.iter().product::<usize>() * 4) as u64;
     n += match &h.appearance {
         AppearanceHeader::Rgb(c) | AppearanceHeader::Sh2(c) => channel_bytes(c, occ),
-        AppearanceHeader::Vm { grid, mlp } => vm_bytes(grid) + mlp.layers.iter().map(|l| ((l[0] + 1) * l[1] * 4) as u64).sum::<u64>(),
+        AppearanceHeader::Vm { grid, mlp } => {
+            vm_bytes(grid) + mlp.layers.iter().map(|l| ((l[0] + 1) * l[1] * 4) as u64).sum::<u64>()
+        }
     };
     n += match &h.features {
         Some(FeaturesHeader::Grid(c)) => channel_bytes(c, occ),
@@ -382,13 +524,21 @@ fn expected_data_bytes(h: &Header) -> u64 {
     n
 }
 
-fn read_channel_grid(t: &Tensors, name: &str, c: &ChannelHeader, bounds: Aabb, occ: &Option<Arc<RankIndex>>) -> Result<ChannelGrid> {
+fn read_channel_grid(
+    t: &Tensors,
+    name: &str,
+    c: &ChannelHeader,
+    bounds: Aabb,
+    occ: &Option<Arc<RankIndex>>,
+) -> Result<ChannelGrid> {
     let geom = GridGeom::new(bounds, c.resolution);
     let [nx, ny, nz] = c.resolution;
     Ok(match c.layout {
         LayoutKind::Dense => ChannelGrid::dense(geom, c.channels, t.f16(name, &[nz, ny, nx, c.channels])?),
         LayoutKind::Sparse => {
-            let ix = occ.clone().ok_or_else(|| Error::bad_file(t.path, format!("'{name}' is sparse but there is no occupancy")))?;
+            let ix = occ
+                .clone()
+                .ok_or_else(|| Error::bad_file(t.path, format!("'{name}' is sparse but there is no occupancy")))?;
             ChannelGrid::sparse(geom, c.channels, ix.clone(), t.f16(name, &[ix.count(), c.channels])?)
         }
     })
@@ -404,14 +554,24 @@ fn read_vm(t: &Tensors, prefix: &str, v: &VmHeader, bounds: Aabb) -> Result<VmGr
     }
     let total = v.comps.iter().sum();
     let basis = t.f32(&format!("{prefix}.basis"), &[total, v.out])?;
-    Ok(VmGrid { geom: GridGeom::new(bounds, r), comps: v.comps, planes, lines, basis, out: v.out })
+    Ok(VmGrid {
+        geom: GridGeom::new(bounds, r),
+        comps: v.comps,
+        planes,
+        lines,
+        basis,
+        out: v.out,
+    })
 }
 
 /// Loads a field file, validating everything (see the module docs).
 pub fn load(path: &Path) -> Result<Field> {
     let (h, _) = read_header(path)?;
     let bytes = read_all(path)?;
-    let t = Tensors { st: parse(&bytes, path)?, path };
+    let t = Tensors {
+        st: parse(&bytes, path)?,
+        path,
+    };
     let bounds = Aabb::new(Vec3::from(h.bounds[0]), Vec3::from(h.bounds[1]));
     let [nx, ny, nz] = h.resolution;
     let geom = GridGeom::new(bounds, h.resolution);
@@ -422,7 +582,10 @@ pub fn load(path: &Path) -> Result<Field> {
             let bytes = t.u8("occupancy", &[n.div_ceil(64) * 8])?;
             let ix = RankIndex::new(Bitmap::from_bytes(h.resolution, &bytes)?);
             if ix.count() != count {
-                return Err(Error::bad_file(path, format!("occupancy has {} voxels set, the header says {count}", ix.count())));
+                return Err(Error::bad_file(
+                    path,
+                    format!("occupancy has {} voxels set, the header says {count}", ix.count()),
+                ));
             }
             Some(Arc::new(ix))
         }
@@ -437,17 +600,44 @@ pub fn load(path: &Path) -> Result<Field> {
             for (i, &[inputs, outputs]) in mlp.layers.iter().enumerate() {
                 let weight = t.f32(&format!("app.mlp.{i}.weight"), &[outputs, inputs])?;
                 let bias = t.f32(&format!("app.mlp.{i}.bias"), &[outputs])?;
-                layers.push(Linear { inputs, outputs, weight, bias });
+                layers.push(Linear {
+                    inputs,
+                    outputs,
+                    weight,
+                    bias,
+                });
             }
-            Appearance::Vm { grid, mlp: Mlp { feat_pe: mlp.feat_pe, view_pe: mlp.view_pe, layers } }
+            Appearance::Vm {
+                grid,
+                mlp: Mlp {
+                    feat_pe: mlp.feat_pe,
+                    view_pe: mlp.view_pe,
+                    layers,
+                },
+            }
         }
     };
     let features = match &h.features {
-        Some(FeaturesHeader::Grid(c)) => Some(Features::Grid(read_channel_grid(&t, "feat.grid", c, bounds, &occupancy)?)),
+        Some(FeaturesHeader::Grid(c)) => Some(Features::Grid(read_channel_grid(
+            &t,
+            "feat.grid",
+            c,
+            bounds,
+            &occupancy,
+        )?)),
         Some(FeaturesHeader::Vm(v)) => Some(Features::Vm(read_vm(&t, "feat.vm", v, bounds)?)),
         None => None,
     };
-    Ok(Field::new(DensityGrid { geom, raw, activation: h.activation }, appearance, features, occupancy))
+    Ok(Field::new(
+        DensityGrid {
+            geom,
+            raw,
+            activation: h.activation,
+        },
+        appearance,
+        features,
+        occupancy,
+    ))
 }
 
 impl Field {

@@ -76,7 +76,13 @@ impl Field {
         features: Option<Features>,
         occupancy: Option<Arc<RankIndex>>,
     ) -> Self {
-        Field { density, appearance, features, occupancy, cache: OnceLock::new() }
+        Field {
+            density,
+            appearance,
+            features,
+            occupancy,
+            cache: OnceLock::new(),
+        }
     }
     pub fn bounds(&self) -> Aabb {
         self.density.geom.bounds
@@ -128,11 +134,22 @@ impl Field {
     /// Approximate memory held by the grids, in bytes.
     pub fn memory_bytes(&self) -> usize {
         let ch = |g: &ChannelGrid| g.data.len() * 2;
-        let vm = |v: &VmGrid| 4 * (v.planes.iter().map(Vec::len).sum::<usize>() + v.lines.iter().map(Vec::len).sum::<usize>() + v.basis.len());
+        let vm = |v: &VmGrid| {
+            4 * (v.planes.iter().map(Vec::len).sum::<usize>()
+                + v.lines.iter().map(Vec::len).sum::<usize>()
+                + v.basis.len())
+        };
         let mut n = self.density.raw.len() * 4;
         n += match &self.appearance {
             Appearance::Rgb(g) | Appearance::Sh2(g) => ch(g),
-            Appearance::Vm { grid, mlp } => vm(grid) + mlp.layers.iter().map(|l| 4 * (l.weight.len() + l.bias.len())).sum::<usize>(),
+            Appearance::Vm { grid, mlp } => {
+                vm(grid)
+                    + mlp
+                        .layers
+                        .iter()
+                        .map(|l| 4 * (l.weight.len() + l.bias.len()))
+                        .sum::<usize>()
+            }
         };
         n += match &self.features {
             Some(Features::Grid(g)) => ch(g),

@@ -30,7 +30,11 @@ pub fn basis(d: Vec3) -> [f32; SH_COEFFS] {
 pub fn color(coeffs: &[f32], d: Vec3) -> Vec3 {
     let b = basis(d);
     let ch = |c: usize| {
-        let s: f32 = coeffs[c * SH_COEFFS..(c + 1) * SH_COEFFS].iter().zip(&b).map(|(a, b)| a * b).sum();
+        let s: f32 = coeffs[c * SH_COEFFS..(c + 1) * SH_COEFFS]
+            .iter()
+            .zip(&b)
+            .map(|(a, b)| a * b)
+            .sum();
         super::vm::sigmoid(s)
     };
     Vec3::new(ch(0), ch(1), ch(2))
