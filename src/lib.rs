@@ -6,7 +6,13 @@
 //! `demo` (procedural scenes), `app` (the bevy editor).
 
 pub mod camera;
+pub mod data;
+pub mod demo;
+pub mod edit;
 pub mod error;
 pub mod field;
+pub mod render;
+pub mod segment;
+pub mod util;
 
 pub use error::{Error, Result};

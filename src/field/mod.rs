@@ -7,6 +7,7 @@ pub mod cache;
 pub mod geom;
 pub mod grid;
 pub mod io;
+pub mod macro_grid;
 pub mod sh;
 pub mod vm;
 
@@ -14,6 +15,7 @@ pub use bitmap::{Bitmap, RankIndex};
 pub use cache::FeatureCache;
 pub use geom::{Aabb, GridGeom};
 pub use grid::{Activation, ChannelGrid, DensityGrid, Layout};
+pub use macro_grid::MacroGrid;
 pub use vm::{Linear, Mlp, VmGrid};
 
 use glam::Vec3;
@@ -55,6 +57,7 @@ pub struct Field {
     /// uses [`Layout::Sparse`] (they all share it).
     pub occupancy: Option<Arc<RankIndex>>,
     cache: OnceLock<Arc<FeatureCache>>,
+    macro_grid: OnceLock<MacroGrid>,
 }
 
 impl Clone for Field {
@@ -65,6 +68,7 @@ impl Clone for Field {
             features: self.features.clone(),
             occupancy: self.occupancy.clone(),
             cache: OnceLock::new(),
+            macro_grid: OnceLock::new(),
         }
     }
 }
@@ -82,6 +86,7 @@ impl Field {
             features,
             occupancy,
             cache: OnceLock::new(),
+            macro_grid: OnceLock::new(),
         }
     }
     pub fn bounds(&self) -> Aabb {
@@ -130,6 +135,10 @@ impl Field {
         }
         let c = Arc::new(FeatureCache::build(self)?);
         Ok(self.cache.get_or_init(|| c).clone())
+    }
+    /// Coarse max-density grid for empty-space skipping, built on first use.
+    pub fn macro_grid(&self) -> &MacroGrid {
+        self.macro_grid.get_or_init(|| MacroGrid::build(&self.density))
     }
     /// Approximate memory held by the grids, in bytes.
     pub fn memory_bytes(&self) -> usize {
@@ -197,5 +206,61 @@ impl Sampler<'_> {
             }
             None => out.fill(0.0),
         }
+    }
+}
+
+/// Builds dense fields from functions of world position: handy for tests,
+/// imports and synthetic data. Raw density, colour and (optionally) features
+/// are evaluated at every grid point in parallel.
+pub struct FieldBuilder {
+    pub geom: GridGeom,
+    pub activation: Activation,
+}
+
+impl FieldBuilder {
+    pub fn new(bounds: Aabb, res: [usize; 3]) -> Self {
+        FieldBuilder {
+            geom: GridGeom::new(bounds, res),
+            activation: Activation::Relu,
+        }
+    }
+    pub fn build(
+        &self,
+        raw_density: impl Fn(Vec3) -> f32 + Sync,
+        color: impl Fn(Vec3) -> Vec3 + Sync,
+        features: Option<(usize, &(dyn Fn(Vec3, &mut [f32]) + Sync))>,
+    ) -> Field {
+        use half::f16;
+        use rayon::prelude::*;
+        let g = self.geom;
+        let raw: Vec<f32> = (0..g.len())
+            .into_par_iter()
+            .map(|i| raw_density(g.point_of(i)))
+            .collect();
+        let rgb: Vec<f16> = (0..g.len())
+            .into_par_iter()
+            .flat_map_iter(|i| color(g.point_of(i)).to_array().map(f16::from_f32))
+            .collect();
+        let feats = features.map(|(c, f)| {
+            let mut data = vec![f16::ZERO; g.len() * c];
+            data.par_chunks_mut(c).enumerate().for_each(|(i, row)| {
+                let mut tmp = vec![0.0; c];
+                f(g.point_of(i), &mut tmp);
+                for (o, v) in row.iter_mut().zip(tmp) {
+                    *o = f16::from_f32(v);
+                }
+            });
+            Features::Grid(ChannelGrid::dense(g, c, data))
+        });
+        Field::new(
+            DensityGrid {
+                geom: g,
+                raw,
+                activation: self.activation,
+            },
+            Appearance::Rgb(ChannelGrid::dense(g, 3, rgb)),
+            feats,
+            None,
+        )
     }
 }

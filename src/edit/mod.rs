@@ -1,0 +1,2 @@
+pub mod crop;
+pub mod mesh;

@@ -1,0 +1,189 @@
+//! Stroke-based 3D segmentation (the method of the paper, DESIGN.md
+//! "Segmentation"): stroke → unit rendered features → K-means centres → NNFM
+//! seed over occupied voxels → bilateral growth → union (positive) or
+//! difference (negative) with the object's 3D bitmap.
+
+pub mod bitmap_file;
+pub mod dense;
+pub mod grow;
+pub mod kmeans;
+pub mod nnfm;
+pub mod stroke;
+
+pub use grow::{grow_step_dense, GrowParams, Grower};
+pub use kmeans::{kmeans, Centroids};
+pub use nnfm::nnfm_seed;
+pub use stroke::{
+    load_strokes, parse_strokes, scribble_stroke, stroke_features, stroke_pixels, Polarity, Stroke, StrokeDoc,
+};
+
+use crate::field::{Bitmap, FeatureCache};
+use crate::render::Scene;
+use crate::util::ms_since;
+use crate::{ensure, Result};
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// How far to grow after seeding.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Growth {
+    /// A fixed number of steps (0 = seed only).
+    Steps(usize),
+    /// Until nothing changes (capped at [`MAX_GROW_STEPS`]).
+    Converge,
+}
+
+pub const MAX_GROW_STEPS: usize = 10_000;
+
+/// Segmentation parameters; defaults from the paper's supplement and the
+/// authors' code.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SegmentParams {
+    /// K-means clusters (1 = average matching; ≥ stroke pixels = plain NNFM).
+    pub k: usize,
+    /// NNFM threshold on squared L2 distance between unit features.
+    pub theta: f32,
+    pub grow: GrowParams,
+    pub growth: Growth,
+    /// Voxels need σ above this to be seeds.
+    pub seed_floor: f32,
+    /// Stroke pixels with rendered opacity below this are on empty space.
+    pub min_stroke_opacity: f32,
+    pub kmeans_seed: u64,
+    pub kmeans_iters: usize,
+}
+
+impl Default for SegmentParams {
+    fn default() -> Self {
+        SegmentParams {
+            k: 10,
+            theta: 0.4,
+            grow: GrowParams::default(),
+            growth: Growth::Converge,
+            seed_floor: 0.1,
+            min_stroke_opacity: 0.5,
+            kmeans_seed: 0,
+            kmeans_iters: 50,
+        }
+    }
+}
+
+impl SegmentParams {
+    pub fn validate(&self) -> Result<()> {
+        ensure!(
+            self.k >= 1 && self.k <= 100_000,
+            "K must be between 1 and 100000, got {}",
+            self.k
+        );
+        ensure!(
+            self.theta.is_finite() && self.theta > 0.0,
+            "theta must be positive, got {}",
+            self.theta
+        );
+        let g = &self.grow;
+        ensure!(
+            g.sigma_f.is_finite() && g.sigma_f > 0.0,
+            "sigma_f must be positive, got {}",
+            g.sigma_f
+        );
+        ensure!(
+            g.sigma_s.is_finite() && g.sigma_s > 0.0,
+            "sigma_s must be positive, got {}",
+            g.sigma_s
+        );
+        ensure!(
+            g.tau.is_finite() && (0.0..1.0).contains(&g.tau),
+            "tau must be in [0, 1), got {}",
+            g.tau
+        );
+        ensure!(
+            self.seed_floor.is_finite() && self.seed_floor >= 0.0,
+            "seed floor must be >= 0"
+        );
+        Ok(())
+    }
+}
+
+/// Per-stage timings of one stroke, in milliseconds.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct Timings {
+    pub stroke_features_ms: f64,
+    pub kmeans_ms: f64,
+    pub nnfm_ms: f64,
+    pub grow_ms: f64,
+    pub grow_steps: usize,
+    pub stroke_pixels: usize,
+    pub seed_voxels: usize,
+    pub region_voxels: usize,
+}
+
+impl Timings {
+    pub fn total_ms(&self) -> f64 {
+        self.stroke_features_ms + self.kmeans_ms + self.nnfm_ms + self.grow_ms
+    }
+}
+
+/// Centres of a set of unit stroke features.
+pub fn stroke_centres(feats: &[f32], dim: usize, p: &SegmentParams) -> Centroids {
+    kmeans(feats, dim, p.k, p.kmeans_seed, p.kmeans_iters)
+}
+
+/// The 3D region selected by stroke features: NNFM seed, then growth.
+pub fn region_from_features(
+    cache: &FeatureCache,
+    feats: &[f32],
+    dim: usize,
+    p: &SegmentParams,
+    t: &mut Timings,
+) -> Result<Bitmap> {
+    ensure!(
+        dim == cache.channels,
+        "stroke features have {dim} channels, the field's cache {}",
+        cache.channels
+    );
+    let t0 = Instant::now();
+    let centres = stroke_centres(feats, dim, p);
+    t.kmeans_ms = ms_since(t0);
+    let t0 = Instant::now();
+    let mut region = nnfm_seed(cache, &centres, p.theta, p.seed_floor);
+    t.nnfm_ms = ms_since(t0);
+    t.seed_voxels = region.count();
+    let t0 = Instant::now();
+    let mut g = Grower::new(cache, p.grow);
+    t.grow_steps = match p.growth {
+        Growth::Steps(n) => (0..n).take_while(|_| g.step(&mut region) > 0).count(),
+        Growth::Converge => g.converge(&mut region, MAX_GROW_STEPS),
+    };
+    t.grow_ms = ms_since(t0);
+    t.region_voxels = region.count();
+    Ok(region)
+}
+
+/// One stroke on `scene` (which must contain the field whose cache is given,
+/// at the place the stroke's camera sees it) to its grown 3D region.
+pub fn region_from_stroke(
+    scene: &Scene,
+    cache: &FeatureCache,
+    stroke: &Stroke,
+    p: &SegmentParams,
+) -> Result<(Bitmap, Timings)> {
+    p.validate()?;
+    let mut t = Timings::default();
+    let t0 = Instant::now();
+    t.stroke_pixels = stroke_pixels(stroke)?.len();
+    let (feats, dim) = stroke_features(scene, stroke, p.min_stroke_opacity)?;
+    t.stroke_features_ms = ms_since(t0);
+    let region = region_from_features(cache, &feats, dim, p, &mut t)?;
+    Ok((region, t))
+}
+
+/// Applies a stroke's region to an object mask: union for positive strokes,
+/// difference for negative ones.
+pub fn apply_region(mask: &mut Bitmap, region: &Bitmap, polarity: Polarity) -> Result<()> {
+    match polarity {
+        Polarity::Positive => mask.union_with(region),
+        Polarity::Negative => mask.subtract(region),
+    }
+}

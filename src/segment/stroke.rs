@@ -1,0 +1,321 @@
+//! Strokes: pixels on a camera, stamped with a square brush, positive or
+//! negative, for a named object. Read from JSON documents or NVOS-style
+//! scribble PNGs; turned into unit-length rendered features.
+
+use crate::camera::{Camera, Intrinsics};
+use crate::ensure;
+use crate::error::{Error, Result};
+use crate::render::{render_rays, RenderOptions, Scene};
+use glam::{Affine3A, Mat4, Vec2};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Polarity {
+    #[default]
+    Positive,
+    Negative,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Stroke {
+    pub camera: Camera,
+    /// Polyline in continuous pixel coordinates.
+    pub points: Vec<Vec2>,
+    /// Brush half-size in pixels: each point stamps a (2r+1)² square (the
+    /// authors' tool uses r = 3, a 7×7 square).
+    pub radius: u32,
+    pub polarity: Polarity,
+    pub object: String,
+    /// Join consecutive points with line segments (a drawn polyline); false
+    /// for scribble images, whose pixels are stamped individually.
+    pub joined: bool,
+}
+
+/// Pixels covered by a stroke (deduplicated, row-major order), clipped to the
+/// image. Consecutive points are joined so fast strokes stay continuous.
+pub fn stroke_pixels(s: &Stroke) -> Result<Vec<(u32, u32)>> {
+    ensure!(!s.points.is_empty(), "stroke for '{}' is empty (no points)", s.object);
+    ensure!(
+        s.points.iter().all(|p| p.is_finite()),
+        "stroke for '{}' has a non-finite point",
+        s.object
+    );
+    ensure!(s.radius <= 256, "brush radius {} is absurdly large (max 256)", s.radius);
+    let (w, h) = (s.camera.intrinsics.width as i64, s.camera.intrinsics.height as i64);
+    let mut hit = vec![false; (w * h) as usize];
+    let r = s.radius as i64;
+    let mut stamp = |p: Vec2| {
+        let (cx, cy) = (p.x.floor() as i64, p.y.floor() as i64);
+        for y in (cy - r).max(0)..=(cy + r).min(h - 1) {
+            for x in (cx - r).max(0)..=(cx + r).min(w - 1) {
+                hit[(y * w + x) as usize] = true;
+            }
+        }
+    };
+    stamp(s.points[0]);
+    for pair in s.points.windows(2) {
+        if !s.joined {
+            stamp(pair[1]);
+            continue;
+        }
+        let n = (pair[1] - pair[0]).length().ceil().max(1.0) as usize;
+        for i in 1..=n {
+            stamp(pair[0].lerp(pair[1], i as f32 / n as f32));
+        }
+    }
+    let px: Vec<(u32, u32)> = (0..(w * h) as usize)
+        .filter(|&i| hit[i])
+        .map(|i| ((i as i64 % w) as u32, (i as i64 / w) as u32))
+        .collect();
+    ensure!(
+        !px.is_empty(),
+        "stroke for '{}' lies entirely off the {}x{} image",
+        s.object,
+        w,
+        h
+    );
+    Ok(px)
+}
+
+/// Rendered features at a stroke's pixels, each scaled to unit length
+/// (`n × C`). Pixels whose rendered opacity is below `min_opacity` are on
+/// empty space and are dropped; a stroke with none left is an error.
+pub fn stroke_features(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<(Vec<f32>, usize)> {
+    let px = stroke_pixels(s)?;
+    let rays: Vec<_> = px.iter().map(|&(x, y)| s.camera.pixel_ray(x, y)).collect();
+    let opts = RenderOptions {
+        features: true,
+        depth: false,
+        ..Default::default()
+    };
+    let out = render_rays(scene, &rays, &opts)?;
+    let c = out.feature_channels;
+    ensure!(
+        c > 0,
+        "the scene has no semantic features: train or load a field with features to segment"
+    );
+    let mut feats = Vec::with_capacity(px.len() * c);
+    for (i, &o) in out.opacity.iter().enumerate() {
+        if o < min_opacity {
+            continue;
+        }
+        let f = &out.features[i * c..(i + 1) * c];
+        let n = f.iter().map(|x| x * x).sum::<f32>().sqrt();
+        if n > 1e-12 {
+            feats.extend(f.iter().map(|x| x / n));
+        }
+    }
+    ensure!(
+        !feats.is_empty(),
+        "stroke for '{}' lies on empty space ({} pixels, none hits the field)",
+        s.object,
+        px.len()
+    );
+    Ok((feats, c))
+}
+
+// ------------------------------------------------------------ JSON documents
+
+/// A camera in a stroke document: a transforms.json frame (`transform_matrix`
+/// with `fl_x`/`fl_y`/`cx`/`cy`/`w`/`h` or `camera_angle_x`/`w`/`h`), or
+/// `intrinsics` + `c2w` (4×4 row-major, OpenGL convention).
+#[derive(Clone, Debug, Serialize, Deserialize, Default)]
+pub struct CameraDoc {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file_path: Option<String>,
+    #[serde(default, alias = "c2w", skip_serializing_if = "Option::is_none")]
+    pub transform_matrix: Option<[[f32; 4]; 4]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub intrinsics: Option<Intrinsics>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fl_x: Option<f32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fl_y: Option<f32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cx: Option<f32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cy: Option<f32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub w: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub h: Option<u32>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_angle_x: Option<f32>,
+}
+
+impl CameraDoc {
+    pub fn from_camera(c: &Camera) -> Self {
+        let k = c.intrinsics;
+        CameraDoc {
+            transform_matrix: Some(crate::camera::set::affine_to_rows(&c.c2w)),
+            fl_x: Some(k.fx),
+            fl_y: Some(k.fy),
+            cx: Some(k.cx),
+            cy: Some(k.cy),
+            w: Some(k.width),
+            h: Some(k.height),
+            ..Default::default()
+        }
+    }
+    pub fn to_camera(&self) -> Result<Camera> {
+        let m = self
+            .transform_matrix
+            .ok_or_else(|| Error::invalid("stroke camera has no transform_matrix / c2w"))?;
+        ensure!(
+            m.iter().flatten().all(|v| v.is_finite()),
+            "stroke camera matrix has a non-finite value"
+        );
+        let mat = Mat4::from_cols_array_2d(&m).transpose();
+        let c2w = Affine3A::from_mat4(mat);
+        ensure!(
+            c2w.matrix3.determinant().abs() > 1e-6,
+            "stroke camera matrix is singular"
+        );
+        let k = if let Some(k) = self.intrinsics {
+            k
+        } else {
+            let (w, h) = match (self.w, self.h) {
+                (Some(w), Some(h)) => (w, h),
+                _ => return Err(Error::invalid("stroke camera needs image size 'w' and 'h'")),
+            };
+            match (self.fl_x, self.camera_angle_x) {
+                (Some(fx), _) => Intrinsics {
+                    width: w,
+                    height: h,
+                    fx,
+                    fy: self.fl_y.unwrap_or(fx),
+                    cx: self.cx.unwrap_or(w as f32 / 2.0),
+                    cy: self.cy.unwrap_or(h as f32 / 2.0),
+                },
+                (None, Some(a)) => Intrinsics::from_fov_x(w, h, a),
+                (None, None) => return Err(Error::invalid("stroke camera needs 'fl_x' or 'camera_angle_x'")),
+            }
+        };
+        ensure!(
+            k.width >= 1 && k.height >= 1 && k.width <= 16384 && k.height <= 16384,
+            "stroke camera size {}x{} is out of range",
+            k.width,
+            k.height
+        );
+        ensure!(
+            k.fx.is_finite() && k.fx > 0.0 && k.fy.is_finite() && k.fy > 0.0,
+            "stroke camera focal length must be positive"
+        );
+        Ok(Camera::new(k, c2w))
+    }
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StrokeDoc {
+    pub camera: CameraDoc,
+    pub points: Vec<[f32; 2]>,
+    #[serde(default = "default_radius")]
+    pub radius: u32,
+    #[serde(default)]
+    pub polarity: Polarity,
+    #[serde(default = "default_object")]
+    pub object: String,
+}
+
+fn default_radius() -> u32 {
+    3
+}
+fn default_object() -> String {
+    "object".into()
+}
+
+impl StrokeDoc {
+    pub fn from_stroke(s: &Stroke) -> Self {
+        StrokeDoc {
+            camera: CameraDoc::from_camera(&s.camera),
+            points: s.points.iter().map(|p| p.to_array()).collect(),
+            radius: s.radius,
+            polarity: s.polarity,
+            object: s.object.clone(),
+        }
+    }
+    pub fn to_stroke(&self) -> Result<Stroke> {
+        Ok(Stroke {
+            camera: self.camera.to_camera()?,
+            points: self.points.iter().map(|&p| Vec2::from(p)).collect(),
+            radius: self.radius,
+            polarity: self.polarity,
+            object: self.object.clone(),
+            joined: true,
+        })
+    }
+}
+
+/// A stroke file holds one stroke, a list, or `{ "strokes": [...] }`.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum StrokeFile {
+    One(StrokeDoc),
+    Many(Vec<StrokeDoc>),
+    Wrapped { strokes: Vec<StrokeDoc> },
+}
+
+/// Reads strokes from a JSON file; every error names the file (and stroke).
+pub fn load_strokes(path: &Path) -> Result<Vec<Stroke>> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    parse_strokes(&text).map_err(|e| Error::bad_file(path, e.to_string()))
+}
+
+pub fn parse_strokes(text: &str) -> Result<Vec<Stroke>> {
+    // Try the single-stroke form first for the most specific error message.
+    let docs = match serde_json::from_str::<StrokeFile>(text) {
+        Ok(StrokeFile::One(d)) => vec![d],
+        Ok(StrokeFile::Many(v)) | Ok(StrokeFile::Wrapped { strokes: v }) => v,
+        Err(_) => {
+            let e = serde_json::from_str::<StrokeDoc>(text)
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default();
+            return Err(Error::invalid(format!("not a stroke document: {e}")));
+        }
+    };
+    ensure!(!docs.is_empty(), "the stroke document holds no strokes");
+    docs.iter()
+        .enumerate()
+        .map(|(i, d)| d.to_stroke().map_err(|e| Error::invalid(format!("stroke {i}: {e}"))))
+        .collect()
+}
+
+/// A scribble PNG (NVOS style: any non-zero pixel is stroked) on `camera`.
+/// The image must have the camera's size.
+pub fn scribble_stroke(path: &Path, camera: Camera, polarity: Polarity, object: &str) -> Result<Stroke> {
+    let img = image::open(path).map_err(|e| Error::bad_file(path, format!("cannot read scribble image: {e}")))?;
+    let img = img.to_luma8();
+    let k = camera.intrinsics;
+    ensure!(
+        img.width() == k.width && img.height() == k.height,
+        "scribble {} is {}x{} but the camera is {}x{}",
+        path.display(),
+        img.width(),
+        img.height(),
+        k.width,
+        k.height
+    );
+    let points: Vec<Vec2> = img
+        .enumerate_pixels()
+        .filter(|(_, _, p)| p.0[0] > 0)
+        .map(|(x, y, _)| Vec2::new(x as f32 + 0.5, y as f32 + 0.5))
+        .collect();
+    ensure!(
+        !points.is_empty(),
+        "scribble {} has no stroked (non-zero) pixels",
+        path.display()
+    );
+    // Scribble pixels are stamped individually (no joining of far-apart pixels).
+    Ok(Stroke {
+        camera,
+        points,
+        radius: 0,
+        polarity,
+        object: object.into(),
+        joined: false,
+    })
+}
