@@ -21,12 +21,18 @@ struct Cli {
 enum Command {
     /// Print a human summary of a field file (sizes, kinds, occupancy, memory).
     Info(cli::info::Args),
+    /// Build the procedural demo scenes (field, ground-truth labels, cameras, strokes).
+    Demo(cli::demo::Args),
+    /// Render field files from a camera set to PNGs (colour, depth, features, object masks).
+    Render(cli::render::Args),
 }
 
 fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Info(a) => cli::info::run(a),
+        Command::Demo(a) => cli::demo::run(a),
+        Command::Render(a) => cli::render::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -3,7 +3,7 @@
 use glam::{Affine3A, Vec3};
 use isrf::camera::{Camera, Intrinsics, Ray};
 use isrf::field::{Aabb, Activation, Bitmap, Field, FieldBuilder};
-use isrf::render::{render, render_rays, ColorEdit, Layer, Mask, RenderOptions, Scene};
+use isrf::render::{render, render_rays, ColorEdit, Layer, Mask, Probe, RenderOptions, Scene};
 use std::sync::Arc;
 
 fn unit_box() -> Aabb {
@@ -137,12 +137,41 @@ fn keep_plus_remove_equals_the_field() {
     let whole = render(&Scene::single(f.clone()), &cam, &opts).unwrap();
     let mut keep = Layer::new(f.clone());
     keep.mask = Mask::Keep(bits.clone());
-    let mut remove = Layer::new(f);
-    remove.mask = Mask::Remove(bits);
+    let mut remove = Layer::new(f.clone());
+    remove.mask = Mask::Remove(bits.clone());
     let split = render(&Scene::new(vec![keep.clone(), remove.clone()]), &cam, &opts).unwrap();
     for (x, y) in whole.out.color.iter().zip(&split.out.color) {
         assert!((*x - *y).abs().max_element() < 1e-4, "{x} vs {y}");
     }
+    // A probe of the bitmap on the whole field measures the same object
+    // opacity as the Keep layer of the split scene.
+    let split_lo = render(
+        &Scene::new(vec![keep.clone(), remove.clone()]),
+        &cam,
+        &RenderOptions {
+            layer_opacity: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let probe = Probe {
+        layer: 0,
+        mask: bits.clone(),
+    };
+    let probed = render(
+        &Scene::single(f.clone()),
+        &cam,
+        &RenderOptions {
+            probes: vec![probe],
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let n = probed.out.opacity.len();
+    for r in 0..n {
+        assert!((probed.out.probe_opacity[r] - split_lo.out.layer_opacity[r]).abs() < 1e-4);
+    }
+    assert!(probed.out.probe_opacity.iter().any(|&o| o > 0.5));
     // Removing alone leaves a hole: strictly less opacity somewhere.
     let holed = render(&Scene::new(vec![remove]), &cam, &opts).unwrap();
     let lost: f32 = whole

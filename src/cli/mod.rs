@@ -1,4 +1,6 @@
 //! Subcommands of the `isrf` binary: argument structs (clap) and thin `run`
 //! functions that call the library.
 
+pub mod demo;
 pub mod info;
+pub mod render;

@@ -170,7 +170,17 @@ impl Scene {
     }
 }
 
-#[derive(Clone, Copy, Debug)]
+/// Measures how much of each ray's opacity comes from a bitmap region of one
+/// layer: Σ wᵢ (σₖ/σ) b(xᵢ). With the layer's field, this is the rendered
+/// opacity of an object *with occlusion by everything else*, i.e. its 2D mask
+/// (the paper's "object opacity > 0.1").
+#[derive(Clone, Debug)]
+pub struct Probe {
+    pub layer: usize,
+    pub mask: Arc<Bitmap>,
+}
+
+#[derive(Clone, Debug)]
 pub struct RenderOptions {
     /// World-space sample spacing; `None` = [`Scene::default_step`].
     pub step: Option<f32>,
@@ -179,6 +189,7 @@ pub struct RenderOptions {
     pub layer_opacity: bool,
     /// Rays stop when the transmittance drops below this.
     pub min_transmittance: f32,
+    pub probes: Vec<Probe>,
 }
 
 impl Default for RenderOptions {
@@ -189,6 +200,7 @@ impl Default for RenderOptions {
             depth: true,
             layer_opacity: false,
             min_transmittance: 1e-4,
+            probes: vec![],
         }
     }
 }
@@ -205,6 +217,8 @@ pub struct RenderOutput {
     pub features: Vec<f32>,
     /// `layers × rays`: Σ wᵢ σₖ/σ per layer.
     pub layer_opacity: Vec<f32>,
+    /// `probes × rays`, see [`Probe`].
+    pub probe_opacity: Vec<f32>,
 }
 
 #[derive(Clone, Debug)]
@@ -288,7 +302,9 @@ struct Tracer<'a> {
     samplers: Vec<crate::field::Sampler<'a>>,
     sigma: Vec<f32>,
     feat: Vec<f32>,
-    opts: RenderOptions,
+    opts: &'a RenderOptions,
+    /// Per-ray accumulators: layer opacities then probe opacities.
+    nl: usize,
     step: f32,
     background: Vec3,
 }
@@ -302,13 +318,14 @@ struct RaySlot<'o> {
 }
 
 impl<'a> Tracer<'a> {
-    fn new(layers: &'a [Prepared<'a>], opts: RenderOptions, step: f32, background: Vec3, channels: usize) -> Self {
+    fn new(layers: &'a [Prepared<'a>], opts: &'a RenderOptions, step: f32, background: Vec3, channels: usize) -> Self {
         Tracer {
             layers,
             samplers: layers.iter().map(|l| l.field.sampler()).collect(),
             sigma: vec![0.0; layers.len()],
             feat: vec![0.0; channels],
             opts,
+            nl: if opts.layer_opacity { layers.len() } else { 0 },
             step,
             background,
         }
@@ -414,7 +431,7 @@ impl<'a> Tracer<'a> {
                 ck = e.apply(ck);
             }
             c += share * ck;
-            if !layer_opacity.is_empty() {
+            if self.nl > 0 {
                 layer_opacity[k] += w * share;
             }
             if want_feat && l.field.feature_channels() == feats.len() {
@@ -424,8 +441,24 @@ impl<'a> Tracer<'a> {
                 }
             }
         }
+        for (m, probe) in self.opts.probes.iter().enumerate() {
+            let k = probe.layer;
+            if self.sigma[k] > 0.0 {
+                let l = &self.layers[k];
+                let p = l.to_local.transform_point3(ray.at(t));
+                let b = bitmap_factor(l.field, &probe.mask, p);
+                layer_opacity[self.nl + m] += w * self.sigma[k] / sum * b;
+            }
+        }
         c
     }
+}
+
+/// Trilinear interpolation of a 0/1 bitmap over a field's grid at `p`.
+#[inline]
+fn bitmap_factor(field: &Field, bits: &Bitmap, p: Vec3) -> f32 {
+    let Some(c) = field.geom().corners(p) else { return 0.0 };
+    (0..8).filter(|&k| bits.get(c.index[k])).map(|k| c.weight[k]).sum()
 }
 
 /// Renders a batch of rays.
@@ -439,6 +472,22 @@ pub fn render_rays(scene: &Scene, rays: &[Ray], opts: &RenderOptions) -> Result<
     );
     let n = rays.len();
     let nl = if opts.layer_opacity { layers.len() } else { 0 };
+    let np = opts.probes.len();
+    for (m, p) in opts.probes.iter().enumerate() {
+        ensure!(
+            p.layer < layers.len(),
+            "probe {m} names layer {} of {}",
+            p.layer,
+            layers.len()
+        );
+        let res = scene.layers[p.layer].field.res();
+        ensure!(
+            p.mask.res() == res,
+            "probe {m}: mask resolution {:?} differs from the field's {res:?}",
+            p.mask.res()
+        );
+    }
+    let ne = nl + np;
     const CHUNK: usize = 64;
     // Each chunk of rays renders into its own small output, then the chunks
     // are concatenated in order; layer opacities are transposed at the end.
@@ -453,9 +502,10 @@ pub fn render_rays(scene: &Scene, rays: &[Ray], opts: &RenderOptions) -> Result<
                 feature_channels: channels,
                 features: vec![0.0; m * channels],
                 layer_opacity: vec![],
+                probe_opacity: vec![],
             };
-            let mut lo = vec![0.0f32; m * nl];
-            let mut tracer = Tracer::new(&layers, *opts, step, scene.background, channels);
+            let mut lo = vec![0.0f32; m * ne];
+            let mut tracer = Tracer::new(&layers, opts, step, scene.background, channels);
             for (j, ray) in chunk.iter().enumerate() {
                 let slot = RaySlot {
                     color: &mut o.color[j],
@@ -463,7 +513,7 @@ pub fn render_rays(scene: &Scene, rays: &[Ray], opts: &RenderOptions) -> Result<
                     depth: &mut o.depth[j],
                     features: &mut o.features[j * channels..(j + 1) * channels],
                 };
-                tracer.trace(ray, &mut lo[j * nl..(j + 1) * nl], slot);
+                tracer.trace(ray, &mut lo[j * ne..(j + 1) * ne], slot);
             }
             (o, lo)
         })
@@ -471,17 +521,19 @@ pub fn render_rays(scene: &Scene, rays: &[Ray], opts: &RenderOptions) -> Result<
     let mut out = RenderOutput {
         feature_channels: channels,
         layer_opacity: vec![0.0; n * nl],
+        probe_opacity: vec![0.0; n * np],
         ..Default::default()
     };
     let mut r0 = 0;
     for (o, lo) in chunks {
-        for (j, per_layer) in lo
-            .chunks(nl.max(1))
-            .enumerate()
-            .take(if nl > 0 { o.color.len() } else { 0 })
-        {
-            for (k, &v) in per_layer.iter().enumerate() {
-                out.layer_opacity[k * n + r0 + j] = v;
+        if ne > 0 {
+            for (j, per_ray) in lo.chunks(ne).enumerate() {
+                for (k, &v) in per_ray[..nl].iter().enumerate() {
+                    out.layer_opacity[k * n + r0 + j] = v;
+                }
+                for (m, &v) in per_ray[nl..].iter().enumerate() {
+                    out.probe_opacity[m * n + r0 + j] = v;
+                }
             }
         }
         r0 += o.color.len();
