@@ -5,11 +5,19 @@
 //! (u + 0.5, v + 0.5), v grows downwards. OpenCV (x right, y down, +z forward)
 //! poses convert with [`Camera::from_opencv`] / [`Camera::c2w_opencv`].
 //! Rays carry a unit direction, so ray parameters `t` are world distances.
+//!
+//! Forward-facing captures (LLFF) are usually reconstructed in normalised
+//! device coordinates: a camera with [`Camera::ndc`] set produces rays in NDC
+//! space (see [`Ndc`]), which is then the field's space.
 
+pub mod colmap;
+pub mod llff;
+mod ndc;
 pub mod set;
+pub use ndc::Ndc;
 pub use set::{CameraFrame, CameraSet};
 
-use glam::{Affine3A, Mat3A, Vec2, Vec3};
+use glam::{Affine3A, Vec2, Vec3};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -67,6 +75,9 @@ pub struct Camera {
     pub intrinsics: Intrinsics,
     /// Camera-to-world, OpenGL convention.
     pub c2w: Affine3A,
+    /// When set, rays and projections live in this NDC space instead of the
+    /// world (forward-facing scenes); `c2w` stays the world pose.
+    pub ndc: Option<Ndc>,
 }
 
 /// Flips y and z: converts between the OpenGL and OpenCV camera frames.
@@ -76,7 +87,15 @@ fn flip_yz() -> Affine3A {
 
 impl Camera {
     pub fn new(intrinsics: Intrinsics, c2w: Affine3A) -> Self {
-        Camera { intrinsics, c2w }
+        Camera {
+            intrinsics,
+            c2w,
+            ndc: None,
+        }
+    }
+    /// The same camera producing rays in NDC space `ndc` (or in the world).
+    pub fn with_ndc(self, ndc: Option<Ndc>) -> Self {
+        Camera { ndc, ..self }
     }
     /// A camera at `eye` looking at `target` with `up` roughly up.
     pub fn look_at(intrinsics: Intrinsics, eye: Vec3, target: Vec3, up: Vec3) -> Self {
@@ -84,14 +103,11 @@ impl Camera {
         let right = up.cross(back).normalize();
         let up = back.cross(right);
         let c2w = Affine3A::from_mat3_translation(glam::Mat3::from_cols(right, up, back), eye);
-        Camera { intrinsics, c2w }
+        Camera::new(intrinsics, c2w)
     }
     /// From an OpenCV camera-to-world pose (x right, y down, z forward).
     pub fn from_opencv(intrinsics: Intrinsics, c2w_cv: Affine3A) -> Self {
-        Camera {
-            intrinsics,
-            c2w: c2w_cv * flip_yz(),
-        }
+        Camera::new(intrinsics, c2w_cv * flip_yz())
     }
     /// This pose in the OpenCV convention.
     pub fn c2w_opencv(&self) -> Affine3A {
@@ -104,11 +120,21 @@ impl Camera {
     pub fn forward(&self) -> Vec3 {
         -Vec3::from(self.c2w.matrix3.z_axis).normalize()
     }
-    /// Ray through continuous pixel coordinates (pixel centres at +0.5).
+    /// Ray through continuous pixel coordinates (pixel centres at +0.5), in
+    /// the world, or in NDC space when [`Camera::ndc`] is set (then it starts
+    /// on the near plane; see [`Ndc::ray`]).
     pub fn ray(&self, u: f32, v: f32) -> Ray {
+        let world = self.world_ray(u, v);
+        match &self.ndc {
+            Some(ndc) => ndc.ray(&world),
+            None => world,
+        }
+    }
+    /// World-space ray through continuous pixel coordinates, ignoring NDC.
+    pub fn world_ray(&self, u: f32, v: f32) -> Ray {
         let k = &self.intrinsics;
         let d_cam = Vec3::new((u - k.cx) / k.fx, -(v - k.cy) / k.fy, -1.0);
-        let dir = (Mat3A::from(self.c2w.matrix3) * d_cam).normalize();
+        let dir = (self.c2w.matrix3 * d_cam).normalize();
         Ray {
             origin: self.position(),
             dir,
@@ -118,9 +144,20 @@ impl Camera {
     pub fn pixel_ray(&self, x: u32, y: u32) -> Ray {
         self.ray(x as f32 + 0.5, y as f32 + 0.5)
     }
-    /// Continuous pixel coordinates of a world point and its depth along −z;
-    /// `None` behind the camera.
+    /// Continuous pixel coordinates of a point and its depth along −z;
+    /// `None` behind the camera. The point is in the camera's ray space: with
+    /// [`Camera::ndc`] set it is an NDC point, mapped back to the world first
+    /// (`None` at or beyond NDC z = 1, the plane at infinity); the depth is
+    /// always the world-space depth.
     pub fn project(&self, p: Vec3) -> Option<(Vec2, f32)> {
+        let p = match &self.ndc {
+            Some(ndc) => ndc.to_world(p)?,
+            None => p,
+        };
+        self.project_world(p)
+    }
+    /// [`Camera::project`] of a world point, ignoring NDC.
+    pub fn project_world(&self, p: Vec3) -> Option<(Vec2, f32)> {
         let q = self.c2w.inverse().transform_point3(p);
         let z = -q.z;
         if z <= 1e-6 {
@@ -129,10 +166,12 @@ impl Camera {
         let k = &self.intrinsics;
         Some((Vec2::new(k.fx * q.x / z + k.cx, -k.fy * q.y / z + k.cy), z))
     }
+    /// The same camera at 1/`factor` resolution. The NDC space, if any, is
+    /// unchanged (it is the field's space, shared by every resolution).
     pub fn downscaled(&self, factor: u32) -> Self {
         Camera {
             intrinsics: self.intrinsics.downscaled(factor),
-            c2w: self.c2w,
+            ..*self
         }
     }
 }

@@ -1,11 +1,27 @@
 //! Camera sets: the frames of a capture or a preview path, read from and
 //! written to `transforms.json` (Blender / NeRF-synthetic / nerfstudio form).
+//!
+//! Reading ([`CameraSet::load`]) accepts both forms, in the OpenGL camera
+//! convention they share:
+//! - Blender / NeRF-synthetic: `camera_angle_x` (and optionally
+//!   `camera_angle_y`), frames with `file_path` (often without extension) and
+//!   `transform_matrix`. The image size comes from `w`/`h` when present, else
+//!   from the header of the frame's image (the path as is, then with `.png`
+//!   appended, relative to the JSON's folder).
+//! - nerfstudio: `fl_x`, `fl_y`, `cx`, `cy`, `w`, `h` at the top level or per
+//!   frame (per frame wins). Distortion parameters (`k1`, `k2`, `p1`, `p2`,
+//!   `camera_model`, …) are ignored: cameras are ideal pinholes, so images
+//!   should be undistorted first.
+//!
+//! An optional top-level `"ndc": {"near", "focal", "width", "height"}` key
+//! marks a forward-facing scene whose rays live in NDC space (see
+//! [`super::Ndc`]); [`CameraSet::save`] writes it and `load` reads it back.
 
-use super::{Camera, Intrinsics};
+use super::{Camera, Intrinsics, Ndc};
 use crate::error::{write_atomic, Error, Result};
-use glam::{Affine3A, Mat4, Vec3};
+use glam::{Affine3A, Mat3, Mat4, Vec3};
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 #[derive(Clone, Debug, PartialEq)]
 pub struct CameraFrame {
@@ -34,6 +50,8 @@ pub struct CameraSet {
 /// `camera_angle_x`, so that both kinds of readers accept it.
 #[derive(Serialize, Deserialize)]
 struct JsonOut {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    ndc: Option<Ndc>,
     camera_angle_x: f32,
     fl_x: f32,
     fl_y: f32,
@@ -98,6 +116,13 @@ impl CameraSet {
             .first()
             .ok_or_else(|| Error::invalid("cannot save an empty camera set"))?;
         let k0 = first.camera.intrinsics;
+        let ndc = first.camera.ndc;
+        if let Some(i) = self.frames.iter().position(|f| f.camera.ndc != ndc) {
+            return Err(Error::invalid(format!(
+                "cannot save camera set: frame {i} has NDC {:?} but frame 0 has {ndc:?} (one NDC space per set)",
+                self.frames[i].camera.ndc
+            )));
+        }
         let frames = self
             .frames
             .iter()
@@ -117,6 +142,7 @@ impl CameraSet {
             })
             .collect();
         let out = JsonOut {
+            ndc,
             camera_angle_x: 2.0 * (0.5 * k0.width as f32 / k0.fx).atan(),
             fl_x: k0.fx,
             fl_y: k0.fy,
@@ -129,4 +155,243 @@ impl CameraSet {
         let text = serde_json::to_string_pretty(&out).map_err(|e| Error::invalid(e.to_string()))?;
         write_atomic(path, text.as_bytes())
     }
+}
+
+/// The JSON we read: every field optional so that both forms parse and a
+/// missing one gets a precise message instead of serde's.
+#[derive(Deserialize)]
+struct JsonIn {
+    camera_angle_x: Option<f64>,
+    camera_angle_y: Option<f64>,
+    #[serde(flatten)]
+    k: JsonIntrinsics,
+    ndc: Option<Ndc>,
+    frames: Option<Vec<JsonFrameIn>>,
+}
+
+#[derive(Deserialize, Default, Clone, Copy)]
+struct JsonIntrinsics {
+    fl_x: Option<f64>,
+    fl_y: Option<f64>,
+    cx: Option<f64>,
+    cy: Option<f64>,
+    w: Option<f64>,
+    h: Option<f64>,
+}
+
+#[derive(Deserialize)]
+struct JsonFrameIn {
+    file_path: Option<String>,
+    transform_matrix: Option<Vec<Vec<f64>>>,
+    #[serde(flatten)]
+    k: JsonIntrinsics,
+}
+
+/// Largest image side accepted from a JSON file (guards against absurd sizes).
+const MAX_SIDE: f64 = 65536.0;
+/// Tolerance on |RᵀR − I| and on the bottom row for a pose to count as rigid.
+const RIGID_TOL: f32 = 2e-3;
+
+impl CameraSet {
+    pub fn len(&self) -> usize {
+        self.frames.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+    /// The frames at `indices`, in that order; an out-of-range index is an error.
+    pub fn subset(&self, indices: &[usize]) -> Result<CameraSet> {
+        let frames = indices
+            .iter()
+            .map(|&i| {
+                self.frames.get(i).cloned().ok_or_else(|| {
+                    Error::invalid(format!("frame index {i} out of range (set has {})", self.frames.len()))
+                })
+            })
+            .collect::<Result<_>>()?;
+        Ok(CameraSet { frames })
+    }
+    /// The same cameras at 1/`factor` resolution.
+    pub fn downscaled(&self, factor: u32) -> CameraSet {
+        let frames = self
+            .frames
+            .iter()
+            .map(|f| CameraFrame {
+                name: f.name.clone(),
+                camera: f.camera.downscaled(factor),
+            })
+            .collect();
+        CameraSet { frames }
+    }
+    /// Reads a `transforms*.json` (a folder means its `transforms.json`).
+    /// See the module docs for the accepted forms.
+    pub fn load(path: &Path) -> Result<CameraSet> {
+        Self::load_inner(path, None)
+    }
+    /// Like [`CameraSet::load`], with `size` (width, height) used for frames
+    /// whose JSON has no `w`/`h` and whose image file is absent (e.g. the
+    /// NeRF-synthetic test split shipped without its images).
+    pub fn load_with_size(path: &Path, size: (u32, u32)) -> Result<CameraSet> {
+        Self::load_inner(path, Some(size))
+    }
+
+    fn load_inner(path: &Path, fallback_size: Option<(u32, u32)>) -> Result<CameraSet> {
+        let path = if path.is_dir() {
+            path.join("transforms.json")
+        } else {
+            path.to_path_buf()
+        };
+        let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+        let json: JsonIn =
+            serde_json::from_str(&text).map_err(|e| Error::bad_file(&path, format!("malformed JSON: {e}")))?;
+        let raw_frames = json.frames.as_deref().unwrap_or(&[]);
+        if raw_frames.is_empty() {
+            return Err(Error::bad_file(&path, "no frames (missing or empty `frames` list)"));
+        }
+        if let Some(ndc) = &json.ndc {
+            ndc.validate().map_err(|e| Error::bad_file(&path, e.to_string()))?;
+        }
+        let dir = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        let frames = raw_frames
+            .iter()
+            .enumerate()
+            .map(|(i, f)| {
+                let name = f
+                    .file_path
+                    .clone()
+                    .ok_or_else(|| Error::bad_file(&path, format!("frame {i}: missing `file_path`")))?;
+                let fail = |why: String| Error::bad_file(&path, format!("frame {i} ({name}): {why}"));
+                let rows = f
+                    .transform_matrix
+                    .as_ref()
+                    .ok_or_else(|| fail("missing `transform_matrix`".into()))?;
+                let c2w = rigid_from_rows(rows).map_err(fail)?;
+                let k = frame_intrinsics(&json, &f.k, &dir, &name, fallback_size).map_err(fail)?;
+                Ok(CameraFrame {
+                    camera: Camera::new(k, c2w).with_ndc(json.ndc),
+                    name,
+                })
+            })
+            .collect::<Result<_>>()?;
+        Ok(CameraSet { frames })
+    }
+}
+
+/// A pose from the rows of a 3×4 or 4×4 matrix; rejects non-finite numbers,
+/// a bottom row other than [0 0 0 1], scale, shear and reflections.
+fn rigid_from_rows(rows: &[Vec<f64>]) -> std::result::Result<Affine3A, String> {
+    if !(rows.len() == 3 || rows.len() == 4) || rows.iter().any(|r| r.len() != 4) {
+        let shape: Vec<usize> = rows.iter().map(Vec::len).collect();
+        return Err(format!(
+            "transform_matrix must be 4×4 (or 3×4), got {} rows of lengths {shape:?}",
+            rows.len()
+        ));
+    }
+    let m: Vec<f32> = rows.iter().flatten().map(|&x| x as f32).collect();
+    if m.iter().any(|x| !x.is_finite()) {
+        return Err("transform_matrix has a non-finite entry".into());
+    }
+    if rows.len() == 4 {
+        let bottom = &m[12..16];
+        let off = bottom
+            .iter()
+            .zip([0.0, 0.0, 0.0, 1.0])
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        if off > RIGID_TOL {
+            return Err(format!(
+                "transform_matrix bottom row is {bottom:?}, expected [0, 0, 0, 1]"
+            ));
+        }
+    }
+    let col = |j: usize| Vec3::new(m[j], m[4 + j], m[8 + j]);
+    let r = Mat3::from_cols(col(0), col(1), col(2));
+    let err = (r.transpose() * r - Mat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0.0f32, |a, x| a.max(x.abs()));
+    if err > RIGID_TOL {
+        return Err(format!(
+            "transform_matrix is not a rigid transform: rotation part not orthonormal (max |RᵀR − I| = {err:.3})"
+        ));
+    }
+    if r.determinant() < 0.0 {
+        return Err("transform_matrix is a reflection (rotation determinant < 0)".into());
+    }
+    Ok(Affine3A::from_mat3_translation(r, col(3)))
+}
+
+/// Intrinsics of one frame: per-frame keys, then top-level keys, then
+/// Blender's field of view and the image file's size.
+fn frame_intrinsics(
+    json: &JsonIn,
+    own: &JsonIntrinsics,
+    dir: &Path,
+    name: &str,
+    fallback_size: Option<(u32, u32)>,
+) -> std::result::Result<Intrinsics, String> {
+    let top = &json.k;
+    let (width, height) = match (own.w.or(top.w), own.h.or(top.h)) {
+        (Some(w), Some(h)) => (side(w, "w")?, side(h, "h")?),
+        _ => image_size(dir, name).or_else(|e| fallback_size.ok_or(e))?,
+    };
+    let from_angle = |angle: Option<f64>, side: u32| angle.map(|a| 0.5 * side as f64 / (0.5 * a).tan());
+    let fx = own
+        .fl_x
+        .or(top.fl_x)
+        .or_else(|| from_angle(json.camera_angle_x, width))
+        .ok_or("missing intrinsics: no `fl_x` and no `camera_angle_x`")?;
+    let fy = own
+        .fl_y
+        .or(top.fl_y)
+        .or_else(|| from_angle(json.camera_angle_y, height))
+        .unwrap_or(fx);
+    let cx = own.cx.or(top.cx).unwrap_or(0.5 * width as f64);
+    let cy = own.cy.or(top.cy).unwrap_or(0.5 * height as f64);
+    for (v, what) in [(fx, "focal length x"), (fy, "focal length y")] {
+        if !(v.is_finite() && v > 0.0 && (v as f32).is_finite()) {
+            return Err(format!("bad intrinsics: {what} = {v}"));
+        }
+    }
+    for (v, what) in [(cx, "cx"), (cy, "cy")] {
+        if !(v as f32).is_finite() {
+            return Err(format!("bad intrinsics: {what} = {v}"));
+        }
+    }
+    Ok(Intrinsics {
+        width,
+        height,
+        fx: fx as f32,
+        fy: fy as f32,
+        cx: cx as f32,
+        cy: cy as f32,
+    })
+}
+
+fn side(v: f64, key: &str) -> std::result::Result<u32, String> {
+    if v.fract() == 0.0 && (1.0..=MAX_SIDE).contains(&v) {
+        Ok(v as u32)
+    } else {
+        Err(format!("bad image size: `{key}` = {v}"))
+    }
+}
+
+/// Candidate files for a frame's image: the path as written, then with `.png`.
+pub(crate) fn image_candidates(dir: &Path, name: &str) -> [PathBuf; 2] {
+    let p = dir.join(name);
+    let mut png = p.clone().into_os_string();
+    png.push(".png");
+    [p, PathBuf::from(png)]
+}
+
+fn image_size(dir: &Path, name: &str) -> std::result::Result<(u32, u32), String> {
+    let candidates = image_candidates(dir, name);
+    let Some(found) = candidates.iter().find(|p| p.is_file()) else {
+        return Err(format!(
+            "missing intrinsics: no `w`/`h` in the JSON and no image at {} or {} to read the size from",
+            candidates[0].display(),
+            candidates[1].display()
+        ));
+    };
+    image::image_dimensions(found).map_err(|e| format!("cannot read image size from {}: {e}", found.display()))
 }
