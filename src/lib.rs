@@ -5,11 +5,14 @@
 //! `segment` (strokes → mask), `edit`, `command`, `data`, `train`, `eval`,
 //! `demo` (procedural scenes), `app` (the bevy editor).
 
+#[cfg(feature = "editor")]
+pub mod app;
 pub mod camera;
 pub mod data;
 pub mod demo;
 pub mod edit;
 pub mod error;
+pub mod eval;
 pub mod field;
 pub mod render;
 pub mod segment;

@@ -25,6 +25,10 @@ enum Command {
     Demo(cli::demo::Args),
     /// Render field files from a camera set to PNGs (colour, depth, features, object masks).
     Render(cli::render::Args),
+    /// Segment an object from brush strokes into a 3D bitmap.
+    Segment(cli::segment::Args),
+    /// Score segmentation against ground truth (demo scenes or NVOS layout), as JSON.
+    Eval(cli::eval::Args),
 }
 
 fn main() {
@@ -33,6 +37,8 @@ fn main() {
         Command::Info(a) => cli::info::run(a),
         Command::Demo(a) => cli::demo::run(a),
         Command::Render(a) => cli::render::run(a),
+        Command::Segment(a) => cli::segment::run(a),
+        Command::Eval(a) => cli::eval::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

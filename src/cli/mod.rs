@@ -2,5 +2,7 @@
 //! functions that call the library.
 
 pub mod demo;
+pub mod eval;
 pub mod info;
 pub mod render;
+pub mod segment;

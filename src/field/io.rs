@@ -230,7 +230,31 @@ pub fn serialize(
         .map(|(n, (d, s, b))| TensorView::new(*d, s.clone(), b).map(|v| (n.clone(), v)))
         .collect::<std::result::Result<_, _>>()
         .map_err(|e| Error::invalid(format!("cannot build tensor: {e}")))?;
-    safetensors::serialize(views, Some(meta)).map_err(|e| Error::invalid(format!("cannot serialise: {e}")))
+    let bytes =
+        safetensors::serialize(views, Some(meta)).map_err(|e| Error::invalid(format!("cannot serialise: {e}")))?;
+    Ok(canonical_header(bytes))
+}
+
+/// Rewrites the JSON header with sorted keys. `safetensors` writes the
+/// metadata map in hash order, so the same field would otherwise give
+/// different bytes from run to run; scripts promise byte-identical outputs.
+/// Tensor offsets are relative to the data section, so only the header and
+/// its length prefix change. The header stays padded to 8 bytes with spaces.
+fn canonical_header(bytes: Vec<u8>) -> Vec<u8> {
+    let n = u64::from_le_bytes(bytes[..8].try_into().expect("8-byte prefix")) as usize;
+    let Ok(v) = serde_json::from_slice::<serde_json::Value>(&bytes[8..8 + n]) else {
+        return bytes;
+    };
+    // serde_json's default map is a BTreeMap: serialising sorts every key.
+    let mut header = serde_json::to_vec(&v).expect("JSON value serialises");
+    while header.len() % 8 != 0 {
+        header.push(b' ');
+    }
+    let mut out = Vec::with_capacity(8 + header.len() + bytes.len() - 8 - n);
+    out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+    out.extend_from_slice(&header);
+    out.extend_from_slice(&bytes[8 + n..]);
+    out
 }
 
 /// Writes a field atomically.

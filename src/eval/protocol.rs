@@ -1,0 +1,350 @@
+//! Scoring segmentations against ground truth.
+//!
+//! Demo scenes: each object is segmented from its built-in stroke (one
+//! positive stroke on the stroke camera) and compared with its label grid in
+//! 3D (IoU over occupied voxels: σ above the occupancy floor, the voxels a
+//! segmentation can select) and in 2D on the held-out views (predicted mask =
+//! the object's rendered opacity > 0.1, as the paper; ground-truth mask = the
+//! same for the label bitmap, so both see the same occlusions).
+//!
+//! NVOS layout: `reference_image/<scene>/<img>`, `scribbles/<scene>/{pos,neg}_*.png`
+//! (any non-zero pixel is a stroke), `masks/<scene>/<target>_mask.png`.
+
+use super::metrics::{average_precision, iou3d, Confusion};
+use crate::camera::{Camera, CameraSet};
+use crate::demo::{DemoScene, STROKE_RADIUS};
+use crate::error::{Error, Result};
+use crate::field::{Bitmap, FeatureCache, Field};
+use crate::render::{render, Probe, RenderOptions, Scene};
+use crate::segment::{apply_region, region_from_stroke, scribble_stroke, Polarity, SegmentParams, Stroke, Timings};
+use glam::Vec2;
+use serde::Serialize;
+use std::path::Path;
+use std::sync::Arc;
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ObjectScore {
+    pub name: String,
+    pub iou3d: f64,
+    pub miou2d: f64,
+    pub accuracy2d: f64,
+    pub ap2d: f64,
+    pub voxels_predicted: usize,
+    pub voxels_true: usize,
+    pub timings: Timings,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct DemoReport {
+    pub scene: String,
+    pub resolution: usize,
+    pub objects: Vec<ObjectScore>,
+    pub mean_iou3d: f64,
+    pub min_iou3d: f64,
+    pub mean_miou2d: f64,
+}
+
+/// The built-in stroke of a demo object, if it has one at this resolution.
+pub fn demo_stroke(scene: &DemoScene, object: &str) -> Option<Stroke> {
+    let o = scene.object(object)?;
+    let px = scene.stroke_pixels(o);
+    (!px.is_empty()).then(|| Stroke {
+        camera: scene.stroke_camera,
+        points: px
+            .iter()
+            .map(|p| Vec2::new(p[0] as f32 + 0.5, p[1] as f32 + 0.5))
+            .collect(),
+        radius: STROKE_RADIUS,
+        polarity: Polarity::Positive,
+        object: o.name.clone(),
+        joined: true,
+    })
+}
+
+/// 2D scores of predicted vs true bitmaps on a set of views, all objects in
+/// one render per view (probes). Returns per object (mIoU, accuracy, AP),
+/// averaged over the views where the object is visible in either mask.
+pub fn masks_2d(
+    field: &Arc<Field>,
+    views: &[Camera],
+    pairs: &[(Arc<Bitmap>, Arc<Bitmap>)],
+) -> Result<Vec<(f64, f64, f64)>> {
+    let scene = Scene::single(field.clone());
+    let mut probes = vec![];
+    for (pred, gt) in pairs {
+        probes.push(Probe {
+            layer: 0,
+            mask: pred.clone(),
+        });
+        probes.push(Probe {
+            layer: 0,
+            mask: gt.clone(),
+        });
+    }
+    let opts = RenderOptions {
+        probes,
+        depth: false,
+        ..Default::default()
+    };
+    let mut acc = vec![(0.0, 0.0, 0.0, 0usize); pairs.len()];
+    for cam in views {
+        let f = render(&scene, cam, &opts)?;
+        let n = (f.width * f.height) as usize;
+        for (k, a) in acc.iter_mut().enumerate() {
+            let soft = &f.out.probe_opacity[2 * k * n..(2 * k + 1) * n];
+            let gt: Vec<bool> = f.out.probe_opacity[(2 * k + 1) * n..(2 * k + 2) * n]
+                .iter()
+                .map(|&v| v > 0.1)
+                .collect();
+            let pred: Vec<bool> = soft.iter().map(|&v| v > 0.1).collect();
+            let c = Confusion::of(&pred, &gt);
+            if c.tp + c.fp + c.fn_ == 0 {
+                continue; // not visible in this view
+            }
+            a.0 += c.iou();
+            a.1 += c.accuracy();
+            a.2 += average_precision(soft, &gt);
+            a.3 += 1;
+        }
+    }
+    Ok(acc
+        .into_iter()
+        .map(|(i, c, p, n)| {
+            if n == 0 {
+                (1.0, 1.0, 1.0)
+            } else {
+                (i / n as f64, c / n as f64, p / n as f64)
+            }
+        })
+        .collect())
+}
+
+/// Ground truth of a label restricted to the voxels a segmentation can select.
+fn true_bitmap(scene: &DemoScene, cache: &FeatureCache, label: u8) -> Result<Bitmap> {
+    let mut gt = scene.labels.mask(label);
+    gt.intersect_with(cache.index.bits())?;
+    Ok(gt)
+}
+
+/// Segments every demo object from its built-in stroke and scores it.
+/// `downscale` reduces the held-out views' resolution for the 2D scores.
+pub fn evaluate_demo(scene: &DemoScene, params: &SegmentParams, downscale: u32) -> Result<DemoReport> {
+    let field = Arc::new(scene.field.clone());
+    let cache = field.feature_cache()?;
+    let render_scene = Scene::single(field.clone());
+    let mut scored = vec![];
+    let mut pairs = vec![];
+    for o in &scene.objects {
+        let Some(stroke) = demo_stroke(scene, &o.name) else {
+            continue;
+        };
+        let (region, timings) = region_from_stroke(&render_scene, &cache, &stroke, params)?;
+        let gt = true_bitmap(scene, &cache, o.label)?;
+        let score = ObjectScore {
+            name: o.name.clone(),
+            iou3d: iou3d(&region, &gt)?,
+            miou2d: 0.0,
+            accuracy2d: 0.0,
+            ap2d: 0.0,
+            voxels_predicted: region.count(),
+            voxels_true: gt.count(),
+            timings,
+        };
+        scored.push(score);
+        pairs.push((Arc::new(region), Arc::new(gt)));
+    }
+    if scored.is_empty() {
+        return Err(Error::invalid(format!(
+            "no object of '{}' has a stroke at this resolution",
+            scene.name
+        )));
+    }
+    let views: Vec<Camera> = scene
+        .eval_cameras
+        .frames
+        .iter()
+        .map(|f| f.camera.downscaled(downscale))
+        .collect();
+    for (s, (i, a, p)) in scored.iter_mut().zip(masks_2d(&field, &views, &pairs)?) {
+        s.miou2d = i;
+        s.accuracy2d = a;
+        s.ap2d = p;
+    }
+    let n = scored.len() as f64;
+    Ok(DemoReport {
+        scene: scene.name.clone(),
+        resolution: field.res()[0],
+        mean_iou3d: scored.iter().map(|s| s.iou3d).sum::<f64>() / n,
+        min_iou3d: scored.iter().map(|s| s.iou3d).fold(f64::INFINITY, f64::min),
+        mean_miou2d: scored.iter().map(|s| s.miou2d).sum::<f64>() / n,
+        objects: scored,
+    })
+}
+
+/// One row of the feature-matching ablation.
+#[derive(Clone, Debug, Serialize)]
+pub struct AblationRow {
+    pub matching: String,
+    pub growth: bool,
+    pub mean_iou3d: f64,
+    pub min_iou3d: f64,
+    pub mean_miou2d: f64,
+}
+
+/// Average matching (K = 1) vs plain NNFM (K = every stroke pixel) vs
+/// K-means + NNFM (K = 10), each without and with growth to convergence.
+pub fn ablation(scene: &DemoScene, base: &SegmentParams, downscale: u32) -> Result<Vec<AblationRow>> {
+    use crate::segment::Growth;
+    let mut rows = vec![];
+    for (name, k) in [
+        ("average (K=1)", 1),
+        ("plain NNFM (K=all)", 100_000),
+        ("K-means + NNFM (K=10)", 10),
+    ] {
+        for grow in [false, true] {
+            let p = SegmentParams {
+                k,
+                growth: if grow { Growth::Converge } else { Growth::Steps(0) },
+                ..*base
+            };
+            let r = evaluate_demo(scene, &p, downscale)?;
+            rows.push(AblationRow {
+                matching: name.into(),
+                growth: grow,
+                mean_iou3d: r.mean_iou3d,
+                min_iou3d: r.min_iou3d,
+                mean_miou2d: r.mean_miou2d,
+            });
+        }
+    }
+    Ok(rows)
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct NvosReport {
+    pub scene: String,
+    pub reference: String,
+    pub target: String,
+    pub positive_scribbles: usize,
+    pub negative_scribbles: usize,
+    pub iou: f64,
+    pub accuracy: f64,
+    pub ap: f64,
+    pub voxels: usize,
+}
+
+fn frame_camera(cams: &CameraSet, name: &str) -> Result<Camera> {
+    cams.frames
+        .iter()
+        .find(|f| f.base_name() == name)
+        .map(|f| f.camera)
+        .ok_or_else(|| Error::invalid(format!("no camera frame named '{name}' in the camera set")))
+}
+
+/// The camera resized to an image's size (NVOS scribbles and masks are at a
+/// downsampled resolution).
+fn camera_at(cam: Camera, w: u32, h: u32) -> Camera {
+    let mut c = cam;
+    let k = &mut c.intrinsics;
+    let (sx, sy) = (w as f32 / k.width as f32, h as f32 / k.height as f32);
+    *k = crate::camera::Intrinsics {
+        width: w,
+        height: h,
+        fx: k.fx * sx,
+        fy: k.fy * sy,
+        cx: k.cx * sx,
+        cy: k.cy * sy,
+    };
+    c
+}
+
+/// Files in `dir` whose names start with `prefix` and end with `suffix`, sorted.
+fn list_files(dir: &Path, prefix: &str, suffix: &str) -> Result<Vec<std::path::PathBuf>> {
+    let rd = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    let mut v: Vec<_> = rd
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_file())
+        .filter(|p| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .is_some_and(|n| n.starts_with(prefix) && n.ends_with(suffix))
+        })
+        .collect();
+    v.sort();
+    Ok(v)
+}
+
+/// NVOS protocol for one scene: scribbles on the reference view segment the
+/// field; the target view's predicted mask is scored against the given mask.
+/// `reference`/`target` are frame base names in `cams` (default: the NVOS
+/// file stems).
+pub fn evaluate_nvos(
+    field: Arc<Field>,
+    cams: &CameraSet,
+    root: &Path,
+    scene_name: &str,
+    reference: Option<&str>,
+    target: Option<&str>,
+    params: &SegmentParams,
+) -> Result<NvosReport> {
+    let ref_dir = root.join("reference_image").join(scene_name);
+    let ref_img = list_files(&ref_dir, "", "")?.into_iter().next();
+    let ref_img = ref_img.ok_or_else(|| Error::invalid(format!("{}: no reference image", ref_dir.display())))?;
+    let ref_stem = ref_img.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+    let mask_path = list_files(&root.join("masks").join(scene_name), "", "_mask.png")?
+        .into_iter()
+        .next()
+        .ok_or_else(|| Error::invalid(format!("no masks/{scene_name}/*_mask.png")))?;
+    let target_stem = mask_path
+        .file_name()
+        .unwrap()
+        .to_string_lossy()
+        .trim_end_matches("_mask.png")
+        .to_string();
+    let ref_cam = frame_camera(cams, reference.unwrap_or(&ref_stem))?;
+    let target_cam = frame_camera(cams, target.unwrap_or(&target_stem))?;
+    let scrib = root.join("scribbles").join(scene_name);
+    let pos = list_files(&scrib, "pos", ".png")?;
+    let neg = list_files(&scrib, "neg", ".png")?;
+    if pos.is_empty() {
+        return Err(Error::invalid(format!("{}: no pos_*.png scribbles", scrib.display())));
+    }
+    let cache = field.feature_cache()?;
+    let scene = Scene::single(field.clone());
+    let mut mask = Bitmap::new(field.res());
+    for (paths, pol) in [(&pos, Polarity::Positive), (&neg, Polarity::Negative)] {
+        for p in paths {
+            let (w, h) = image::image_dimensions(p).map_err(|e| Error::bad_file(p, e.to_string()))?;
+            let stroke = scribble_stroke(p, camera_at(ref_cam, w, h), pol, scene_name)?;
+            let (region, _) = region_from_stroke(&scene, &cache, &stroke, params)?;
+            apply_region(&mut mask, &region, pol)?;
+        }
+    }
+    let gt_img = image::open(&mask_path)
+        .map_err(|e| Error::bad_file(&mask_path, e.to_string()))?
+        .to_luma8();
+    let cam = camera_at(target_cam, gt_img.width(), gt_img.height());
+    let opts = RenderOptions {
+        probes: vec![Probe {
+            layer: 0,
+            mask: Arc::new(mask.clone()),
+        }],
+        depth: false,
+        ..Default::default()
+    };
+    let f = render(&scene, &cam, &opts)?;
+    let gt: Vec<bool> = gt_img.pixels().map(|p| p.0[0] > 127).collect();
+    let pred: Vec<bool> = f.out.probe_opacity.iter().map(|&v| v > 0.1).collect();
+    let c = Confusion::of(&pred, &gt);
+    Ok(NvosReport {
+        scene: scene_name.into(),
+        reference: ref_stem,
+        target: target_stem,
+        positive_scribbles: pos.len(),
+        negative_scribbles: neg.len(),
+        iou: c.iou(),
+        accuracy: c.accuracy(),
+        ap: average_precision(&f.out.probe_opacity, &gt),
+        voxels: mask.count(),
+    })
+}
