@@ -7,6 +7,7 @@
 
 #[cfg(feature = "editor")]
 pub mod app;
+pub mod bench;
 pub mod camera;
 pub mod data;
 pub mod demo;

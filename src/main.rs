@@ -29,6 +29,8 @@ enum Command {
     Segment(cli::segment::Args),
     /// Score segmentation against ground truth (demo scenes or NVOS layout), as JSON.
     Eval(cli::eval::Args),
+    /// Measured figures printed as tables (render: rays/s; segment: stroke-to-mask stages).
+    Bench(cli::bench::Args),
 }
 
 fn main() {
@@ -39,6 +41,7 @@ fn main() {
         Command::Render(a) => cli::render::run(a),
         Command::Segment(a) => cli::segment::run(a),
         Command::Eval(a) => cli::eval::run(a),
+        Command::Bench(a) => cli::bench::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

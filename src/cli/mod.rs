@@ -1,6 +1,7 @@
 //! Subcommands of the `isrf` binary: argument structs (clap) and thin `run`
 //! functions that call the library.
 
+pub mod bench;
 pub mod demo;
 pub mod eval;
 pub mod info;
