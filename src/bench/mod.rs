@@ -39,12 +39,18 @@ pub fn median(xs: &[f64]) -> f64 {
 #[derive(Clone, Debug)]
 pub struct Timed<T> {
     pub runs_ms: Vec<f64>,
+    /// CPU time of all threads of the process during each run (empty where
+    /// the kernel does not report it).
+    pub cpu_ms: Vec<f64>,
     pub value: T,
 }
 
 impl<T> Timed<T> {
     pub fn median_ms(&self) -> f64 {
         median(&self.runs_ms)
+    }
+    pub fn median_cpu_ms(&self) -> Option<f64> {
+        (!self.cpu_ms.is_empty()).then(|| median(&self.cpu_ms))
     }
     pub fn runs(&self) -> usize {
         self.runs_ms.len()
@@ -67,14 +73,60 @@ pub fn repeat_with<S, T>(
     mut f: impl FnMut(S) -> T,
 ) -> Timed<T> {
     let mut runs_ms = vec![];
+    let mut cpu_ms = vec![];
     loop {
         let input = setup();
+        let cpu0 = process_cpu_ns();
         let (value, ms) = time_ms(|| f(input));
         runs_ms.push(ms);
+        if let (Some(a), Some(b)) = (cpu0, process_cpu_ns()) {
+            cpu_ms.push(b.saturating_sub(a) as f64 / 1e6);
+        }
         if runs_ms.len() >= repeats.max(1) || runs_ms.iter().sum::<f64>() > budget_ms {
-            return Timed { runs_ms, value };
+            if cpu_ms.len() != runs_ms.len() {
+                cpu_ms.clear();
+            }
+            return Timed { runs_ms, cpu_ms, value };
         }
     }
+}
+
+/// CPU time consumed so far by the live threads of this process, in ns
+/// (first field of `/proc/self/task/*/schedstat`, nanosecond resolution).
+/// On a shared machine wall time includes waiting for other processes; CPU
+/// time does not, so both are reported. `None` where unavailable.
+pub fn process_cpu_ns() -> Option<u64> {
+    // The kernel brings a running thread's count up to date when it is
+    // scheduled; yielding does that for this thread (others are asleep or
+    // spinning down, off by at most a scheduler tick).
+    std::thread::yield_now();
+    let mut total = 0u64;
+    for entry in std::fs::read_dir("/proc/self/task").ok()? {
+        let path = entry.ok()?.path().join("schedstat");
+        // A thread may exit between listing and reading: skip it.
+        let Ok(text) = std::fs::read_to_string(path) else {
+            continue;
+        };
+        total += text.split_whitespace().next()?.parse::<u64>().ok()?;
+    }
+    Some(total)
+}
+
+/// The 1-minute load average (`/proc/loadavg`), to judge contention.
+pub fn load_average() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+/// Resets this process's peak resident set (`VmHWM`) to its current size
+/// (Linux `clear_refs` value 5), so a later [`peak_rss_bytes`] measures one
+/// phase; false where not supported.
+pub fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
 }
 
 /// A field of `/proc/self/status` in bytes (`VmHWM` = peak resident set,

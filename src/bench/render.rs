@@ -7,7 +7,7 @@
 //! each camera is rendered once with colour + depth and once with features
 //! too.
 
-use super::{median, time_ms, Table};
+use super::{load_average, repeat, time_ms, Table};
 use crate::camera::{Camera, Intrinsics};
 use crate::error::Result;
 use crate::render::{render, RenderOptions, Scene};
@@ -26,12 +26,11 @@ pub struct RenderBenchRow {
     pub width: u32,
     pub height: u32,
     pub frames: usize,
-    /// Median over the frames.
-    pub ms_per_frame: f64,
-    /// All rays of all frames over their total time.
-    pub rays_per_s: f64,
-    pub ms_per_frame_features: f64,
-    pub rays_per_s_features: f64,
+    pub load_average: Option<f64>,
+    /// Colour + depth.
+    pub plain: FrameTimes,
+    /// Colour + depth + semantic features.
+    pub features: FrameTimes,
 }
 
 /// `camera` with the same field of view at `width × height` pixels.
@@ -57,18 +56,39 @@ fn spread(all: &[Camera], n: usize) -> Vec<Camera> {
     (0..n).map(|i| all[(i * all.len() / n.max(1)) % all.len()]).collect()
 }
 
-/// Renders every camera once; returns (median ms per frame, rays per second).
-fn time_frames(scene: &Scene, cams: &[Camera], opts: &RenderOptions) -> Result<(f64, f64)> {
-    let mut ms = vec![];
+/// Frame times of one render setting.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameTimes {
+    /// Median wall time per frame.
+    pub ms_per_frame: f64,
+    /// Median CPU time (all threads) per frame, where measurable.
+    pub cpu_ms_per_frame: Option<f64>,
+    /// All rays of all frames over their total wall time.
+    pub rays_per_s: f64,
+}
+
+/// Renders every camera once.
+fn time_frames(scene: &Scene, cams: &[Camera], opts: &RenderOptions) -> Result<FrameTimes> {
     let mut rays = 0u64;
     for c in cams {
-        let (frame, t) = time_ms(|| render(scene, c, opts));
-        frame?;
-        ms.push(t);
         rays += c.intrinsics.width as u64 * c.intrinsics.height as u64;
     }
-    let total_s = ms.iter().sum::<f64>() / 1e3;
-    Ok((median(&ms), rays as f64 / total_s.max(1e-9)))
+    let (mut i, mut err) = (0, None);
+    let t = repeat(cams.len(), f64::INFINITY, || {
+        if let Err(e) = render(scene, &cams[i], opts) {
+            err.get_or_insert(e);
+        }
+        i += 1;
+    });
+    if let Some(e) = err {
+        return Err(e);
+    }
+    let total_s = t.runs_ms.iter().sum::<f64>() / 1e3;
+    Ok(FrameTimes {
+        ms_per_frame: t.median_ms(),
+        cpu_ms_per_frame: t.median_cpu_ms(),
+        rays_per_s: rays as f64 / total_s.max(1e-9),
+    })
 }
 
 /// Builds demo scene `scene_name` at `res`³ and measures the renderer on it.
@@ -96,8 +116,9 @@ pub fn bench_render(scene_name: &str, res: usize, width: u32, height: u32, frame
         ..Default::default()
     };
     render(&scene, &cams[0], &plain)?; // warm-up: threads, page faults, caches
-    let (ms_per_frame, rays_per_s) = time_frames(&scene, &cams, &plain)?;
-    let (ms_per_frame_features, rays_per_s_features) = time_frames(&scene, &cams, &with_features)?;
+    let load_average = load_average();
+    let plain = time_frames(&scene, &cams, &plain)?;
+    let features = time_frames(&scene, &cams, &with_features)?;
     Ok(RenderBenchRow {
         scene: scene_name.to_string(),
         res,
@@ -109,10 +130,9 @@ pub fn bench_render(scene_name: &str, res: usize, width: u32, height: u32, frame
         width,
         height,
         frames,
-        ms_per_frame,
-        rays_per_s,
-        ms_per_frame_features,
-        rays_per_s_features,
+        load_average,
+        plain,
+        features,
     })
 }
 
@@ -125,10 +145,13 @@ pub fn render_table(rows: &[RenderBenchRow]) -> Table {
         "image",
         "frames",
         "ms/frame",
+        "cpu ms/frame",
         "rays/s",
         "ms/frame +feat",
+        "cpu ms +feat",
         "rays/s +feat",
     ]);
+    let cpu = |v: Option<f64>| v.map_or_else(|| "-".into(), |x| format!("{x:.1}"));
     for r in rows {
         t.row(vec![
             format!("{}^3", r.res),
@@ -136,10 +159,12 @@ pub fn render_table(rows: &[RenderBenchRow]) -> Table {
             format!("{:.1}", r.field_bytes as f64 / 1e6),
             format!("{}x{}", r.width, r.height),
             r.frames.to_string(),
-            format!("{:.1}", r.ms_per_frame),
-            format!("{:.0}", r.rays_per_s),
-            format!("{:.1}", r.ms_per_frame_features),
-            format!("{:.0}", r.rays_per_s_features),
+            format!("{:.1}", r.plain.ms_per_frame),
+            cpu(r.plain.cpu_ms_per_frame),
+            format!("{:.0}", r.plain.rays_per_s),
+            format!("{:.1}", r.features.ms_per_frame),
+            cpu(r.features.cpu_ms_per_frame),
+            format!("{:.0}", r.features.rays_per_s),
         ]);
     }
     t

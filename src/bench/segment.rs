@@ -11,7 +11,7 @@
 //! the renderer uses for the stroke's features. Stroke features and K-means
 //! are the same code in both columns.
 
-use super::{mb, mb_or_na, peak_rss_bytes, repeat, repeat_with, time_ms, Table};
+use super::{load_average, mb, mb_or_na, peak_rss_bytes, repeat, repeat_with, reset_peak_rss, time_ms, Table, Timed};
 use crate::error::{Error, Result};
 use crate::field::{Bitmap, FeatureCache};
 use crate::render::Scene;
@@ -55,16 +55,29 @@ impl SegmentBenchConfig {
 pub struct Stage {
     pub name: &'static str,
     pub ms: f64,
+    /// Median CPU time of all threads (None where not measurable).
+    pub cpu_ms: Option<f64>,
     pub runs: usize,
     pub dense_ms: Option<f64>,
+    pub dense_cpu_ms: Option<f64>,
     pub dense_runs: usize,
     pub shared: bool,
+}
+
+/// Median wall ms, median CPU ms, runs.
+type StageTime = (f64, Option<f64>, usize);
+
+fn stage_time<T>(t: &Timed<T>) -> StageTime {
+    (t.median_ms(), t.median_cpu_ms(), t.runs())
 }
 
 #[derive(Clone, Debug)]
 pub struct SegmentBenchReport {
     pub config: SegmentBenchConfig,
     pub threads: usize,
+    /// 1-minute load average when the run started (other work on the machine
+    /// makes wall times longer than CPU times).
+    pub load_average: Option<f64>,
     pub channels: usize,
     /// Voxels in the feature cache (σ above the occupancy floor).
     pub cached_voxels: usize,
@@ -84,7 +97,8 @@ pub struct SegmentBenchReport {
     /// The library's own `region_from_stroke`, end to end (median).
     pub pipeline_ms: f64,
     pub pipeline_matches: bool,
-    /// Peak resident memory after the cache path, before the dense arrays.
+    /// Peak resident memory while building the scene and running the cache
+    /// path (before the dense arrays).
     pub peak_before_dense: Option<u64>,
     pub dense: Option<DenseSide>,
 }
@@ -94,6 +108,7 @@ pub struct DenseSide {
     pub build_ms: f64,
     pub bytes: usize,
     pub grow_steps: usize,
+    /// Peak resident memory while the dense arrays were alive.
     pub peak_after: Option<u64>,
     /// Names of the outputs that differ from the cache path (empty = identical).
     pub mismatches: Vec<String>,
@@ -107,6 +122,9 @@ pub const STAGE_NAMES: [&str; 5] = [
     "growth to convergence",
 ];
 
+/// The stages that make up stroke-to-mask.
+pub const MASK_STAGES: [&str; 4] = ["stroke features", "k-means", "nnfm seed", "growth to convergence"];
+
 impl SegmentBenchReport {
     fn stage(&self, name: &str) -> &Stage {
         self.stages
@@ -116,17 +134,18 @@ impl SegmentBenchReport {
     }
     /// Stroke features + K-means + NNFM + growth to convergence, cache built.
     pub fn stroke_to_mask_ms(&self) -> f64 {
-        ["stroke features", "k-means", "nnfm seed", "growth to convergence"]
-            .iter()
-            .map(|n| self.stage(n).ms)
-            .sum()
+        MASK_STAGES.iter().map(|n| self.stage(n).ms).sum()
+    }
+    /// CPU time of the same stages (all threads).
+    pub fn stroke_to_mask_cpu_ms(&self) -> Option<f64> {
+        MASK_STAGES.iter().map(|n| self.stage(n).cpu_ms).sum()
     }
     /// The same with the dense reference's NNFM and growth.
     pub fn dense_stroke_to_mask_ms(&self) -> Option<f64> {
-        ["stroke features", "k-means", "nnfm seed", "growth to convergence"]
-            .iter()
-            .map(|n| self.stage(n).dense_ms)
-            .sum()
+        MASK_STAGES.iter().map(|n| self.stage(n).dense_ms).sum()
+    }
+    pub fn dense_stroke_to_mask_cpu_ms(&self) -> Option<f64> {
+        MASK_STAGES.iter().map(|n| self.stage(n).dense_cpu_ms).sum()
     }
     pub fn speedup(&self) -> Option<f64> {
         self.dense_stroke_to_mask_ms().map(|d| d / self.stroke_to_mask_ms())
@@ -136,13 +155,15 @@ impl SegmentBenchReport {
     }
 }
 
-fn stage(name: &'static str, fast: (f64, usize), dense: Option<(f64, usize)>, shared: bool) -> Stage {
+fn stage(name: &'static str, fast: StageTime, dense: Option<StageTime>, shared: bool) -> Stage {
     Stage {
         name,
         ms: fast.0,
-        runs: fast.1,
+        cpu_ms: fast.1,
+        runs: fast.2,
         dense_ms: dense.map(|d| d.0),
-        dense_runs: dense.map_or(0, |d| d.1),
+        dense_cpu_ms: dense.and_then(|d| d.1),
+        dense_runs: dense.map_or(0, |d| d.2),
         shared,
     }
 }
@@ -170,6 +191,8 @@ pub fn bench_segment(cfg: &SegmentBenchConfig) -> Result<SegmentBenchReport> {
         cfg.repeats
     );
     let p = SegmentParams::default();
+    reset_peak_rss();
+    let load_average = load_average();
     let (demo, scene_build_ms) = time_ms(|| crate::demo::build(&cfg.scene, cfg.res, 0));
     let demo = demo?;
     let stroke = crate::eval::protocol::demo_stroke(&demo, &cfg.object).ok_or_else(|| {
@@ -231,21 +254,22 @@ pub fn bench_segment(cfg: &SegmentBenchConfig) -> Result<SegmentBenchReport> {
         conv: &conv.value,
     };
     let dense = cfg.dense.then(|| bench_dense(&field, &p, &fast, r, b));
-    let ft = (feats.median_ms(), feats.runs());
-    let kt = (centres.median_ms(), centres.runs());
+    let ft = stage_time(&feats);
+    let kt = stage_time(&centres);
     // Stroke features and K-means are the same code on both sides.
-    let same = |t: (f64, usize)| cfg.dense.then_some((t.0, 0));
+    let same = |t: StageTime| cfg.dense.then_some((t.0, t.1, 0));
     let dt = |i: usize| dense.as_ref().map(|d| d.1[i]);
     let stages = vec![
         stage(STAGE_NAMES[0], ft, same(ft), true),
         stage(STAGE_NAMES[1], kt, same(kt), true),
-        stage(STAGE_NAMES[2], (seed.median_ms(), seed.runs()), dt(0), false),
-        stage(STAGE_NAMES[3], (one.median_ms(), one.runs()), dt(1), false),
-        stage(STAGE_NAMES[4], (conv.median_ms(), conv.runs()), dt(2), false),
+        stage(STAGE_NAMES[2], stage_time(&seed), dt(0), false),
+        stage(STAGE_NAMES[3], stage_time(&one), dt(1), false),
+        stage(STAGE_NAMES[4], stage_time(&conv), dt(2), false),
     ];
     Ok(SegmentBenchReport {
         config: cfg.clone(),
         threads: rayon::current_num_threads(),
+        load_average,
         channels: dim,
         cached_voxels: cache.len(),
         stroke_pixels: stroke_pixels(&stroke)?.len(),
@@ -276,7 +300,7 @@ struct Outputs<'a> {
 }
 
 /// The dense reference on the same centres; compares its outputs with the
-/// cache path's. Returns the side's summary and the (median ms, runs) of
+/// cache path's. Returns the side's summary and the times of
 /// NNFM, one growth step and growth to convergence.
 fn bench_dense(
     field: &crate::field::Field,
@@ -284,8 +308,9 @@ fn bench_dense(
     fast: &Outputs,
     r: usize,
     b: f64,
-) -> (DenseSide, [(f64, usize); 3]) {
+) -> (DenseSide, [StageTime; 3]) {
     let (centres, seed, one, conv) = (fast.centres, fast.seed, fast.one, fast.conv);
+    reset_peak_rss();
     let (d, build_ms) = time_ms(|| dense_features(field));
     let bytes = (d.feats.len() + d.sigma.len()) * 4;
     let dseed = repeat(r, b, || nnfm_dense(&d, centres, p.theta, p.seed_floor));
@@ -340,11 +365,7 @@ fn bench_dense(
         peak_after,
         mismatches,
     };
-    let times = [
-        (dseed.median_ms(), dseed.runs()),
-        (done.median_ms(), done.runs()),
-        (dconv.median_ms(), dconv.runs()),
-    ];
+    let times = [stage_time(&dseed), stage_time(&done), stage_time(&dconv)];
     (side, times)
 }
 
@@ -354,26 +375,34 @@ fn ratio(dense: Option<f64>, fast: f64) -> String {
 
 /// The per-stage table of one report.
 pub fn stage_table(r: &SegmentBenchReport) -> Table {
-    let mut t = Table::new(&["stage", "cache ms", "runs", "dense ms", "runs", "speed-up"]);
+    let mut t = Table::new(&[
+        "stage", "cache ms", "cpu ms", "runs", "dense ms", "cpu ms", "runs", "speed-up",
+    ]);
+    let ms = |v: Option<f64>| v.map_or_else(|| "-".into(), |x| format!("{x:.2}"));
     for s in &r.stages {
+        let (dense, dense_cpu, dense_runs) = if s.shared && s.dense_ms.is_some() {
+            ("(same code)".into(), "".into(), "".into())
+        } else {
+            (ms(s.dense_ms), ms(s.dense_cpu_ms), s.dense_runs.to_string())
+        };
         t.row(vec![
             s.name.to_string(),
             format!("{:.2}", s.ms),
+            ms(s.cpu_ms),
             s.runs.to_string(),
-            match (s.dense_ms, s.shared) {
-                (Some(_), true) => "(same code)".into(),
-                (Some(d), false) => format!("{d:.2}"),
-                (None, _) => "-".into(),
-            },
-            if s.shared { "".into() } else { s.dense_runs.to_string() },
+            dense,
+            dense_cpu,
+            dense_runs,
             ratio(s.dense_ms, s.ms),
         ]);
     }
     t.row(vec![
         "stroke-to-mask".into(),
         format!("{:.2}", r.stroke_to_mask_ms()),
+        ms(r.stroke_to_mask_cpu_ms()),
         "".into(),
-        r.dense_stroke_to_mask_ms().map_or("-".into(), |d| format!("{d:.2}")),
+        ms(r.dense_stroke_to_mask_ms()),
+        ms(r.dense_stroke_to_mask_cpu_ms()),
         "".into(),
         ratio(r.dense_stroke_to_mask_ms(), r.stroke_to_mask_ms()),
     ]);
@@ -389,6 +418,11 @@ pub fn summary(r: &SegmentBenchReport) -> Vec<String> {
             c.scene, c.res, c.object, r.cached_voxels, r.channels, r.stroke_pixels, r.stroke_features, r.centres
         ),
         format!(
+            "{} rayon threads, load average {} at the start (wall ms include waiting for other processes; cpu ms = all threads' CPU time)",
+            r.threads,
+            r.load_average.map_or_else(|| "n/a".into(), |l| format!("{l:.2}"))
+        ),
+        format!(
             "seed {} voxels, after one step {}, converged {} voxels in {} steps",
             r.seed_voxels, r.one_step_voxels, r.region_voxels, r.grow_steps
         ),
@@ -402,7 +436,7 @@ pub fn summary(r: &SegmentBenchReport) -> Vec<String> {
                 .map_or(String::new(), |d| format!(", dense features {:.1} ms", d.build_ms))
         ),
         format!(
-            "memory: feature cache {:.1} MB{}; peak RSS (VmHWM) {} before the dense arrays{}",
+            "memory: feature cache {:.1} MB{}; peak RSS (VmHWM) {} for scene + cache path{}",
             mb(r.cache_bytes as u64),
             r.dense
                 .as_ref()
@@ -410,7 +444,7 @@ pub fn summary(r: &SegmentBenchReport) -> Vec<String> {
             mb_or_na(r.peak_before_dense),
             r.dense
                 .as_ref()
-                .map_or(String::new(), |d| format!(", {} after", mb_or_na(d.peak_after)))
+                .map_or(String::new(), |d| format!(", {} while the dense arrays lived", mb_or_na(d.peak_after)))
         ),
         format!(
             "library pipeline (region_from_stroke, end to end): {:.2} ms, same region: {}",

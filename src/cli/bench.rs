@@ -96,7 +96,10 @@ fn run_render(a: RenderArgs) -> Result<()> {
         .rev()
         .find(|r| r.res == largest)
         .expect("measured every resolution");
-    println!("rays/s: {:.0}", last.rays_per_s);
+    if let Some(l) = last.load_average {
+        println!("load average {l:.2} at the start: wall times include waiting for other processes, cpu times do not");
+    }
+    println!("rays/s: {:.0}", last.plain.rays_per_s);
     Ok(())
 }
 

@@ -36,18 +36,53 @@ impl Default for GrowParams {
     }
 }
 
-/// The 26 neighbour offsets plus the centre, with their spatial weights.
-fn offsets(p: &GrowParams) -> Vec<([i64; 3], f32)> {
-    let mut v = Vec::with_capacity(27);
-    for dz in -1..=1i64 {
-        for dy in -1..=1i64 {
-            for dx in -1..=1i64 {
-                let l1 = (dx.abs() + dy.abs() + dz.abs()) as f32;
-                v.push(([dx, dy, dz], (-l1 / p.sigma_s).exp()));
+/// The 26 neighbour offsets plus the centre, with their spatial weights and
+/// their flat-index deltas on this grid (x fastest), in a fixed order (the
+/// order of the sums, so results do not depend on how a voxel is reached).
+#[derive(Clone, Debug)]
+struct Offsets {
+    res: [usize; 3],
+    step: Vec<([i64; 3], f32)>,
+    delta: Vec<isize>,
+}
+
+impl Offsets {
+    fn new(res: [usize; 3], p: &GrowParams) -> Self {
+        let mut step = Vec::with_capacity(27);
+        let mut delta = Vec::with_capacity(27);
+        let (sx, sy) = (res[0] as isize, (res[0] * res[1]) as isize);
+        for dz in -1..=1i64 {
+            for dy in -1..=1i64 {
+                for dx in -1..=1i64 {
+                    let l1 = (dx.abs() + dy.abs() + dz.abs()) as f32;
+                    step.push(([dx, dy, dz], (-l1 / p.sigma_s).exp()));
+                    delta.push(dx as isize + sx * dy as isize + sy * dz as isize);
+                }
+            }
+        }
+        Offsets { res, step, delta }
+    }
+    /// Calls `f(k, n)` for every in-grid neighbour n (centre included) of
+    /// voxel `v`, k being the offset's position. Interior voxels take the
+    /// fast path of flat deltas; border voxels check bounds.
+    #[inline]
+    fn for_each(&self, v: usize, mut f: impl FnMut(usize, usize)) {
+        let [nx, ny, nz] = self.res;
+        let x = v % nx;
+        let yz = v / nx;
+        let (y, z) = (yz % ny, yz / ny);
+        if x >= 1 && y >= 1 && z >= 1 && x + 1 < nx && y + 1 < ny && z + 1 < nz {
+            for (k, &d) in self.delta.iter().enumerate() {
+                f(k, v.wrapping_add_signed(d));
+            }
+        } else {
+            for (k, &(d, _)) in self.step.iter().enumerate() {
+                if let Some(n) = neighbour(self.res, [x, y, z], d) {
+                    f(k, n);
+                }
             }
         }
     }
-    v
 }
 
 #[inline]
@@ -63,47 +98,48 @@ fn neighbour(res: [usize; 3], c: [usize; 3], d: [i64; 3]) -> Option<usize> {
 
 /// Decides one frontier candidate: Some(true) to add, Some(false) to reject,
 /// None if it is not on the frontier (masked, empty, or no masked neighbour).
-fn decide(cache: &FeatureCache, mask: &Bitmap, offs: &[([i64; 3], f32)], p: &GrowParams, v: usize) -> Option<bool> {
+fn decide(cache: &FeatureCache, mask: &Bitmap, offs: &Offsets, p: &GrowParams, v: usize) -> Option<bool> {
     if mask.get(v) {
         return None;
     }
     let rc = cache.index.slot(v)?;
-    let c = cache.geom.coords(v);
     let fc = cache.row(rc);
     let (mut num, mut den) = (0.0f32, 0.0f32);
     let mut touches = false;
-    for &(d, ws) in offs {
-        let Some(n) = neighbour(cache.geom.res, c, d) else {
-            continue;
-        };
+    offs.for_each(v, |k, n| {
         let masked = mask.get(n);
         touches |= masked;
-        let Some(rn) = cache.index.slot(n) else { continue };
+        let Some(rn) = cache.index.slot(n) else { return };
         let df: f32 = cache.row(rn).iter().zip(fc).map(|(a, b)| (a - b) * (a - b)).sum();
-        let w = ws * (-df / p.sigma_f).exp();
+        let w = offs.step[k].1 * (-df / p.sigma_f).exp();
         den += w;
         if masked {
             num += w;
         }
-    }
+    });
     touches.then(|| den > 0.0 && num / den > p.tau)
 }
 
 /// Unmasked occupied neighbours of `voxels` (deduplicated, ascending).
-fn candidates(cache: &FeatureCache, mask: &Bitmap, voxels: &[u32]) -> Vec<u32> {
-    let offs = offsets(&GrowParams::default());
-    let mut seen = Bitmap::new(cache.geom.res);
-    for &v in voxels {
-        let c = cache.geom.coords(v as usize);
-        for &(d, _) in &offs {
-            if let Some(n) = neighbour(cache.geom.res, c, d) {
-                if !mask.get(n) && cache.index.slot(n).is_some() {
-                    seen.set(n, true);
-                }
+fn candidates(cache: &FeatureCache, mask: &Bitmap, offs: &Offsets, voxels: &[u32]) -> Vec<u32> {
+    let occupied = cache.index.bits();
+    let mut out: Vec<u32> = voxels
+        .par_chunks(2048)
+        .flat_map_iter(|chunk| {
+            let mut local = Vec::new();
+            for &v in chunk {
+                offs.for_each(v as usize, |_, n| {
+                    if !mask.get(n) && occupied.get(n) {
+                        local.push(n as u32);
+                    }
+                });
             }
-        }
-    }
-    seen.ones().map(|i| i as u32).collect()
+            local
+        })
+        .collect();
+    out.par_sort_unstable();
+    out.dedup();
+    out
 }
 
 /// Incremental grower: remembers which voxels were added last so each step
@@ -111,7 +147,7 @@ fn candidates(cache: &FeatureCache, mask: &Bitmap, voxels: &[u32]) -> Vec<u32> {
 pub struct Grower<'a> {
     cache: &'a FeatureCache,
     params: GrowParams,
-    offs: Vec<([i64; 3], f32)>,
+    offs: Offsets,
     /// Voxels added by the previous step; `None` before the first step (then
     /// the whole mask's neighbourhood is the candidate set).
     last_added: Option<Vec<u32>>,
@@ -122,7 +158,7 @@ impl<'a> Grower<'a> {
         Grower {
             cache,
             params,
-            offs: offsets(&params),
+            offs: Offsets::new(cache.geom.res, &params),
             last_added: None,
         }
     }
@@ -132,7 +168,7 @@ impl<'a> Grower<'a> {
             Some(v) => v,
             None => mask.ones().map(|i| i as u32).collect(),
         };
-        let cand = candidates(self.cache, mask, &sources);
+        let cand = candidates(self.cache, mask, &self.offs, &sources);
         let added: Vec<u32> = cand
             .par_iter()
             .copied()
@@ -159,7 +195,7 @@ impl<'a> Grower<'a> {
 /// The straightforward implementation: every voxel of the grid is tested
 /// each step. Used as the reference in tests and the benchmark.
 pub fn grow_step_dense(cache: &FeatureCache, mask: &mut Bitmap, params: &GrowParams) -> usize {
-    let offs = offsets(params);
+    let offs = Offsets::new(cache.geom.res, params);
     let added: Vec<usize> = (0..cache.geom.len())
         .into_par_iter()
         .filter(|&v| decide(cache, mask, &offs, params, v) == Some(true))
