@@ -97,7 +97,7 @@ impl ColorEdit {
 pub enum Mask {
     #[default]
     All,
-    /// σ'(x) = σ(x)·b(x): only the object.
+    /// σ'(x) = σ(x)·b(x): only the object (b: see [`bitmap_fraction`]).
     Keep(Arc<Bitmap>),
     /// σ'(x) = σ(x)·(1 − b(x)): the field with the object removed.
     Remove(Arc<Bitmap>),
@@ -241,15 +241,7 @@ impl Prepared<'_> {
     #[inline]
     fn mask_factor(&self, p: Vec3) -> f32 {
         let Some((bits, keep)) = self.mask else { return 1.0 };
-        let Some(c) = self.field.geom().corners(p) else {
-            return 0.0;
-        };
-        let mut b = 0.0;
-        for k in 0..8 {
-            if bits.get(c.index[k]) {
-                b += c.weight[k];
-            }
-        }
+        let b = bitmap_fraction(self.field, bits, p);
         if keep {
             b
         } else {
@@ -446,7 +438,7 @@ impl<'a> Tracer<'a> {
             if self.sigma[k] > 0.0 {
                 let l = &self.layers[k];
                 let p = l.to_local.transform_point3(ray.at(t));
-                let b = bitmap_factor(l.field, &probe.mask, p);
+                let b = bitmap_fraction(l.field, &probe.mask, p);
                 layer_opacity[self.nl + m] += w * self.sigma[k] / sum * b;
             }
         }
@@ -454,11 +446,32 @@ impl<'a> Tracer<'a> {
     }
 }
 
-/// Trilinear interpolation of a 0/1 bitmap over a field's grid at `p`.
+/// The share b(x) of the density at `p` that comes from voxels in `bits`:
+/// b = Σ wᵢ σᵢ mᵢ / Σ wᵢ σᵢ over the 8 corners (σᵢ activated).
+///
+/// Weighting the bitmap by density, rather than interpolating the 0/1 bitmap
+/// alone, is what makes a removal clean: halfway between a dense voxel of the
+/// object and an empty voxel outside it, all the density is the object's, so
+/// σ·(1 − b) is 0 there, where σ·(1 − trilinear b) would leave half of it as
+/// a visible shell. For ReLU fields σ·b is exactly the trilinear interpolation
+/// of the masked grid σᵢ·mᵢ; Keep and Remove still add up to σ everywhere.
 #[inline]
-fn bitmap_factor(field: &Field, bits: &Bitmap, p: Vec3) -> f32 {
+pub fn bitmap_fraction(field: &Field, bits: &Bitmap, p: Vec3) -> f32 {
     let Some(c) = field.geom().corners(p) else { return 0.0 };
-    (0..8).filter(|&k| bits.get(c.index[k])).map(|k| c.weight[k]).sum()
+    let (mut inside, mut total) = (0.0f32, 0.0f32);
+    for k in 0..8 {
+        let w = c.weight[k] * field.density.sigma_at(c.index[k]);
+        total += w;
+        if bits.get(c.index[k]) {
+            inside += w;
+        }
+    }
+    if total > 0.0 {
+        inside / total
+    } else {
+        // No density at any corner: fall back to the plain interpolation.
+        (0..8).filter(|&k| bits.get(c.index[k])).map(|k| c.weight[k]).sum()
+    }
 }
 
 /// Renders a batch of rays.

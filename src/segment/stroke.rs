@@ -121,7 +121,7 @@ pub fn stroke_features(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<(V
 /// A camera in a stroke document: a transforms.json frame (`transform_matrix`
 /// with `fl_x`/`fl_y`/`cx`/`cy`/`w`/`h` or `camera_angle_x`/`w`/`h`), or
 /// `intrinsics` + `c2w` (4×4 row-major, OpenGL convention).
-#[derive(Clone, Debug, Serialize, Deserialize, Default)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, Default)]
 pub struct CameraDoc {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub file_path: Option<String>,
@@ -207,7 +207,7 @@ impl CameraDoc {
     }
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StrokeDoc {
     pub camera: CameraDoc,

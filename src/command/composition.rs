@@ -1,0 +1,294 @@
+//! Compositions on disk: a small human-readable document (JSON, or RON by
+//! extension) naming the field files (with a CRC-32 and size so that a
+//! changed file is noticed), the objects with their transforms and edits,
+//! the segmentation parameters; plus one `.safetensors` sidecar holding the
+//! objects' bitmaps (tensor `object.<i>`, packed bits). Both written
+//! atomically, the bitmaps first so the document never names missing data.
+
+use super::session::{FieldEntry, ObjectEntry, Session, State};
+use super::FieldSource;
+use crate::error::{write_atomic, Error, Result};
+use crate::field::io::{check_format, parse, read_all, read_metadata, serialize, Tensors};
+use crate::field::Bitmap;
+use crate::render::ColorEdit;
+use crate::segment::SegmentParams;
+use glam::{Affine3A, Mat4};
+use safetensors::tensor::Dtype;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+pub const FORMAT: &str = "isrf-composition";
+pub const VERSION: u32 = 1;
+const BITMAPS_FORMAT: &str = "isrf-bitmaps";
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Doc {
+    format: String,
+    version: u32,
+    bitmaps: PathBuf,
+    background: [f32; 3],
+    params: SegmentParams,
+    fields: Vec<FieldDoc>,
+    objects: Vec<ObjectDoc>,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FieldDoc {
+    name: String,
+    source: FieldSource,
+    transform: [[f32; 4]; 4],
+    visible: bool,
+    #[serde(default)]
+    crc32: Option<u32>,
+    #[serde(default)]
+    bytes: Option<u64>,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ObjectDoc {
+    name: String,
+    field: String,
+    transform: [[f32; 4]; 4],
+    removed: bool,
+    visible: bool,
+    duplicate: bool,
+    #[serde(default)]
+    color_edit: Option<ColorEdit>,
+}
+
+fn rows(a: &Affine3A) -> [[f32; 4]; 4] {
+    crate::camera::set::affine_to_rows(a)
+}
+
+fn affine(m: &[[f32; 4]; 4], what: &str) -> Result<Affine3A> {
+    crate::ensure!(
+        m.iter().flatten().all(|v| v.is_finite()),
+        "{what}: transform has a non-finite value"
+    );
+    let a = Affine3A::from_mat4(Mat4::from_cols_array_2d(m).transpose());
+    crate::ensure!(
+        a.matrix3.determinant().abs() > 1e-12,
+        "{what}: transform is not invertible"
+    );
+    Ok(a)
+}
+
+fn checksum(path: &Path) -> Result<(u32, u64)> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    Ok((crc32fast::hash(&bytes), bytes.len() as u64))
+}
+
+/// Path of `p` relative to `dir` when it lies inside it, else absolute.
+fn relative_to(p: &Path, dir: &Path) -> PathBuf {
+    let abs = std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let d = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf());
+    abs.strip_prefix(&d).map(Path::to_path_buf).unwrap_or(abs)
+}
+
+/// Saves the session's composition to `path` (+ `<stem>.bitmaps.safetensors`).
+/// Returns the files written.
+pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
+    let st = &session.state;
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."))
+        .to_path_buf();
+    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "composition".into());
+    let bitmaps_name = PathBuf::from(format!("{stem}.bitmaps.safetensors"));
+    let mut fields = vec![];
+    for f in &st.fields {
+        let (source, crc, bytes) = match &f.source {
+            FieldSource::File(p) => {
+                let full = if p.is_absolute() {
+                    p.clone()
+                } else {
+                    session.base_dir.join(p)
+                };
+                let (c, n) = checksum(&full)?;
+                (FieldSource::File(relative_to(&full, &dir)), Some(c), Some(n))
+            }
+            s => (s.clone(), None, None),
+        };
+        fields.push(FieldDoc {
+            name: f.name.clone(),
+            source,
+            transform: rows(&f.transform),
+            visible: f.visible,
+            crc32: crc,
+            bytes,
+        });
+    }
+    let mut names = vec![];
+    let mut tensors = vec![];
+    let mut res_meta = std::collections::BTreeMap::new();
+    for (i, o) in st.objects.iter().enumerate() {
+        let b = o.mask.to_bytes();
+        names.push(format!("object.{i}"));
+        tensors.push((Dtype::U8, vec![b.len()], b));
+        res_meta.insert(format!("object.{i}"), o.mask.res());
+    }
+    let mut meta = HashMap::new();
+    meta.insert("format".to_string(), BITMAPS_FORMAT.to_string());
+    meta.insert("version".to_string(), VERSION.to_string());
+    meta.insert(
+        "resolutions".to_string(),
+        serde_json::to_string(&res_meta).expect("map serialises"),
+    );
+    let bitmaps_path = dir.join(&bitmaps_name);
+    write_atomic(&bitmaps_path, &serialize(&names, &tensors, meta)?)?;
+    let objects = st
+        .objects
+        .iter()
+        .map(|o| ObjectDoc {
+            name: o.name.clone(),
+            field: o.field.clone(),
+            transform: rows(&o.transform),
+            removed: o.removed,
+            visible: o.visible,
+            duplicate: o.duplicate,
+            color_edit: o.color_edit,
+        })
+        .collect();
+    let doc = Doc {
+        format: FORMAT.into(),
+        version: VERSION,
+        bitmaps: bitmaps_name,
+        background: st.background,
+        params: st.params,
+        fields,
+        objects,
+    };
+    let text = match path.extension().and_then(|e| e.to_str()) {
+        Some("ron") => ron::ser::to_string_pretty(&doc, ron::ser::PrettyConfig::default())
+            .map_err(|e| Error::invalid(e.to_string()))?,
+        _ => serde_json::to_string_pretty(&doc).map_err(|e| Error::invalid(e.to_string()))?,
+    };
+    write_atomic(path, text.as_bytes())?;
+    Ok(vec![bitmaps_path, path.to_path_buf()])
+}
+
+/// Opens a composition into a fresh session (paths resolve against the
+/// document's folder; outputs go to `out_dir`).
+pub fn load(path: &Path, out_dir: &Path) -> Result<Session> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let doc: Doc = match path.extension().and_then(|e| e.to_str()) {
+        Some("ron") => ron::from_str(&text).map_err(|e| Error::bad_file(path, format!("not a composition: {e}")))?,
+        _ => serde_json::from_str(&text).map_err(|e| Error::bad_file(path, format!("not a composition: {e}")))?,
+    };
+    if doc.format != FORMAT {
+        return Err(Error::bad_file(
+            path,
+            format!("this is a '{}' document, not a composition", doc.format),
+        ));
+    }
+    if doc.version > VERSION {
+        return Err(Error::bad_file(
+            path,
+            format!(
+                "composition version {} is newer than this isrf reads ({VERSION})",
+                doc.version
+            ),
+        ));
+    }
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."))
+        .to_path_buf();
+    let mut session = Session::new(&dir, out_dir);
+    let mut st = State {
+        params: doc.params,
+        background: doc.background,
+        ..Default::default()
+    };
+    doc.params
+        .validate()
+        .map_err(|e| Error::bad_file(path, e.to_string()))?;
+    for f in &doc.fields {
+        let ctx = |e: Error| Error::bad_file(path, format!("field '{}': {e}", f.name));
+        if let (FieldSource::File(p), Some(crc), Some(n)) = (&f.source, f.crc32, f.bytes) {
+            let full = if p.is_absolute() { p.clone() } else { dir.join(p) };
+            if !full.exists() {
+                return Err(ctx(Error::invalid(format!("file '{}' is missing", full.display()))));
+            }
+            let (c, len) = checksum(&full).map_err(ctx)?;
+            if (c, len) != (crc, n) {
+                return Err(ctx(Error::invalid(format!(
+                    "file '{}' has changed since the composition was saved",
+                    full.display()
+                ))));
+            }
+        }
+        // Load through the same code path as the LoadField command.
+        let mut tmp = Session::new(&dir, out_dir);
+        tmp.apply(&super::Command::LoadField {
+            name: f.name.clone(),
+            source: f.source.clone(),
+            transform: None,
+        })
+        .map_err(ctx)?;
+        let mut entry: FieldEntry = tmp.state.fields.pop().expect("field was loaded");
+        entry.transform = affine(&f.transform, &f.name).map_err(ctx)?;
+        entry.visible = f.visible;
+        st.fields.push(entry);
+    }
+    let bitmaps_path = dir.join(&doc.bitmaps);
+    let (meta, _) = read_metadata(&bitmaps_path)?;
+    check_format(&meta, BITMAPS_FORMAT, VERSION, &bitmaps_path)?;
+    let res: HashMap<String, [usize; 3]> = meta
+        .get("resolutions")
+        .and_then(|r| serde_json::from_str(r).ok())
+        .ok_or_else(|| Error::bad_file(&bitmaps_path, "missing 'resolutions' in metadata"))?;
+    let bytes = read_all(&bitmaps_path)?;
+    let t = Tensors {
+        st: parse(&bytes, &bitmaps_path)?,
+        path: &bitmaps_path,
+    };
+    for (i, o) in doc.objects.iter().enumerate() {
+        let ctx = |e: Error| Error::bad_file(path, format!("object '{}': {e}", o.name));
+        let field = st.fields.iter().find(|f| f.name == o.field).ok_or_else(|| {
+            ctx(Error::invalid(format!(
+                "its field '{}' is not in the composition",
+                o.field
+            )))
+        })?;
+        let key = format!("object.{i}");
+        let r = *res
+            .get(&key)
+            .ok_or_else(|| ctx(Error::invalid("its bitmap is missing")))?;
+        crate::ensure!(
+            r == field.field.res(),
+            "object '{}': bitmap resolution {r:?} differs from field '{}' {:?}",
+            o.name,
+            o.field,
+            field.field.res()
+        );
+        let n = r.iter().product::<usize>().div_ceil(64) * 8;
+        let mask = Bitmap::from_bytes(r, &t.u8(&key, &[n])?).map_err(ctx)?;
+        if let Some(e) = &o.color_edit {
+            e.validate().map_err(ctx)?;
+        }
+        st.objects.push(ObjectEntry {
+            name: o.name.clone(),
+            field: o.field.clone(),
+            mask: Arc::new(mask),
+            transform: affine(&o.transform, &o.name).map_err(ctx)?,
+            removed: o.removed,
+            visible: o.visible,
+            duplicate: o.duplicate,
+            color_edit: o.color_edit,
+        });
+    }
+    session.set_state(st);
+    Ok(session)
+}

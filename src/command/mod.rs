@@ -1,0 +1,400 @@
+//! The one serialisable [`Command`] type used by the editor and by scripts,
+//! the [`Session`] state it acts on (fields, objects, segmentation
+//! parameters), the edit log with undo/redo, compositions on disk, and the
+//! script runner (`isrf run`).
+//!
+//! Every user action is a `Command`. `Session::apply` validates and performs
+//! it, pushes the previous state on the undo stack (states share their grids
+//! and bitmaps through `Arc`, so a step costs only what it changed) and
+//! appends the command to the log; "save as script" writes the log.
+
+pub mod composition;
+pub mod script;
+pub mod session;
+
+pub use script::{parse_script, run_script, validate_script, Script};
+pub use session::{Session, StepOutput};
+
+use crate::camera::CameraSet;
+use crate::render::ColorEdit;
+use crate::segment::stroke::{CameraDoc, StrokeDoc};
+use crate::segment::{Growth, Polarity};
+use crate::{ensure, Result};
+use glam::{Affine3A, EulerRot, Mat4, Quat, Vec3};
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// Where a field comes from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FieldSource {
+    /// A field file (.safetensors).
+    File(PathBuf),
+    /// A built-in demo scene, by name.
+    Demo {
+        scene: String,
+        #[serde(default = "default_demo_res")]
+        res: usize,
+        #[serde(default)]
+        seed: u64,
+    },
+}
+
+pub fn default_demo_res() -> usize {
+    128
+}
+
+/// An affine edit. Applied as
+/// `A = T(translate) · T(pivot) · R(rotate) · S(scale) · T(−pivot)`, or the
+/// given `matrix` (4×4, row-major) when present. Rotations are XYZ Euler
+/// angles in degrees. The pivot defaults to the object's centre.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TransformSpec {
+    pub translate: [f32; 3],
+    pub rotate: [f32; 3],
+    pub scale: [f32; 3],
+    pub pivot: Option<[f32; 3]>,
+    pub matrix: Option<[[f32; 4]; 4]>,
+}
+
+impl Default for TransformSpec {
+    fn default() -> Self {
+        TransformSpec {
+            translate: [0.0; 3],
+            rotate: [0.0; 3],
+            scale: [1.0; 3],
+            pivot: None,
+            matrix: None,
+        }
+    }
+}
+
+impl TransformSpec {
+    pub fn translation(t: Vec3) -> Self {
+        TransformSpec {
+            translate: t.to_array(),
+            ..Default::default()
+        }
+    }
+    pub fn validate(&self) -> Result<()> {
+        let mut all: Vec<f32> = [self.translate, self.rotate, self.scale].concat();
+        all.extend(self.pivot.unwrap_or_default());
+        all.extend(self.matrix.iter().flatten().flatten());
+        ensure!(all.iter().all(|v| v.is_finite()), "transform has a non-finite value");
+        ensure!(
+            self.scale.iter().all(|&s| s.abs() > 1e-6 && s.abs() < 1e6),
+            "transform scale {:?} is zero or absurd",
+            self.scale
+        );
+        if let Some(m) = self.matrix {
+            let a = Affine3A::from_mat4(Mat4::from_cols_array_2d(&m).transpose());
+            let det = a.matrix3.determinant();
+            ensure!(
+                det.abs() > 1e-9 && det.is_finite(),
+                "transform matrix is not invertible"
+            );
+        }
+        Ok(())
+    }
+    /// The affine map, with `default_pivot` used when none is given.
+    pub fn affine(&self, default_pivot: Vec3) -> Affine3A {
+        if let Some(m) = self.matrix {
+            return Affine3A::from_mat4(Mat4::from_cols_array_2d(&m).transpose());
+        }
+        let p = self.pivot.map(Vec3::from).unwrap_or(default_pivot);
+        let [rx, ry, rz] = self.rotate.map(f32::to_radians);
+        let rs = Affine3A::from_scale_rotation_translation(
+            Vec3::from(self.scale),
+            Quat::from_euler(EulerRot::XYZ, rx, ry, rz),
+            Vec3::ZERO,
+        );
+        Affine3A::from_translation(Vec3::from(self.translate) + p) * rs * Affine3A::from_translation(-p)
+    }
+}
+
+/// Which stroke.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StrokeSource {
+    /// A stroke document inline.
+    Inline(StrokeDoc),
+    /// A stroke JSON file (see `isrf segment`); all its strokes, in order.
+    File(PathBuf),
+    /// An NVOS-style scribble PNG on a camera.
+    Scribble { path: PathBuf, camera: CameraDoc },
+    /// The built-in stroke of a demo scene's object (the field must be a demo).
+    Demo { object: String },
+}
+
+/// Cameras for rendering and mask export.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CameraSource {
+    /// A transforms.json file.
+    File(PathBuf),
+    /// The orbit of a loaded demo field (by field name); `eval` for its held-out views.
+    Demo {
+        field: String,
+        #[serde(default)]
+        eval: bool,
+    },
+    /// An orbit around a point.
+    Orbit {
+        center: [f32; 3],
+        radius: f32,
+        #[serde(default = "default_elevation")]
+        elevation_deg: f32,
+        #[serde(default = "default_frames")]
+        frames: usize,
+        #[serde(default = "default_width")]
+        width: u32,
+        #[serde(default = "default_height")]
+        height: u32,
+        #[serde(default = "default_fov")]
+        fov_deg: f32,
+    },
+}
+
+fn default_elevation() -> f32 {
+    25.0
+}
+fn default_frames() -> usize {
+    24
+}
+fn default_width() -> u32 {
+    400
+}
+fn default_height() -> u32 {
+    300
+}
+fn default_fov() -> f32 {
+    50.0
+}
+
+/// What to export.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Export {
+    /// 2D masks (object opacity > 0.1, with occlusion) for a camera set:
+    /// `<out>/<frame>_mask.png`.
+    Masks {
+        object: String,
+        cameras: CameraSource,
+        out: PathBuf,
+        #[serde(default = "one")]
+        downscale: u32,
+    },
+    /// The object as a standalone field cropped to its bounding box.
+    ObjectField {
+        object: String,
+        out: PathBuf,
+        #[serde(default = "two")]
+        margin: usize,
+    },
+    /// A mesh (marching cubes on density) of an object or a whole field, as
+    /// placed in the composition; `.ply` or `.glb`.
+    Mesh {
+        target: String,
+        out: PathBuf,
+        #[serde(default)]
+        iso: Option<f32>,
+    },
+    /// The 3D bitmap of an object.
+    Bitmap { object: String, out: PathBuf },
+    /// The composition document (fields by path, objects, transforms, edits).
+    Composition { out: PathBuf },
+    /// The edit log as a script.
+    Script { out: PathBuf },
+}
+
+fn one() -> u32 {
+    1
+}
+fn two() -> usize {
+    2
+}
+
+/// Every edit of the editor and of scripts.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum Command {
+    /// Add a field to the composition under `name`, placed by `transform`.
+    LoadField {
+        name: String,
+        source: FieldSource,
+        #[serde(default)]
+        transform: Option<TransformSpec>,
+    },
+    /// Move / rotate / scale a whole field (composition alignment).
+    TransformField {
+        field: String,
+        transform: TransformSpec,
+    },
+    /// Segmentation parameters (unset ones keep their value).
+    SetParams {
+        #[serde(default)]
+        k: Option<usize>,
+        #[serde(default)]
+        theta: Option<f32>,
+        #[serde(default)]
+        sigma_f: Option<f32>,
+        #[serde(default)]
+        sigma_s: Option<f32>,
+        #[serde(default)]
+        tau: Option<f32>,
+        #[serde(default)]
+        growth: Option<Growth>,
+    },
+    /// A brush stroke for `object` (created on first positive stroke) on
+    /// `field` (default: the object's field, else the first field).
+    Stroke {
+        object: String,
+        #[serde(default)]
+        field: Option<String>,
+        #[serde(default)]
+        polarity: Option<Polarity>,
+        source: StrokeSource,
+    },
+    /// Grow an object's mask by bilateral filtering.
+    Grow {
+        object: String,
+        steps: Growth,
+    },
+    Remove {
+        object: String,
+    },
+    Restore {
+        object: String,
+    },
+    /// Show or hide a field or an object (a hidden field still shows its
+    /// visible detached objects: that is how an object is placed alone).
+    SetVisible {
+        target: String,
+        visible: bool,
+    },
+    /// Move / rotate / scale an object relative to its current placement.
+    Transform {
+        object: String,
+        transform: TransformSpec,
+    },
+    /// Copy an object (the copy does not cut its source).
+    Duplicate {
+        object: String,
+        name: String,
+        #[serde(default)]
+        transform: Option<TransformSpec>,
+    },
+    /// Appearance edit of an object (replaces the previous edit).
+    Appearance {
+        object: String,
+        edit: ColorEdit,
+    },
+    Rename {
+        target: String,
+        name: String,
+    },
+    Delete {
+        target: String,
+    },
+    /// Render the composition to `<out>/<frame>.png`.
+    Render {
+        cameras: CameraSource,
+        out: PathBuf,
+        #[serde(default = "one")]
+        downscale: u32,
+        #[serde(default)]
+        frames: Option<usize>,
+        #[serde(default)]
+        depth: bool,
+        #[serde(default)]
+        background: Option<[f32; 3]>,
+    },
+    Export(Export),
+}
+
+impl Command {
+    /// Short name for messages ("stroke", "load_field", ...).
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Command::LoadField { .. } => "load_field",
+            Command::TransformField { .. } => "transform_field",
+            Command::SetParams { .. } => "set_params",
+            Command::Stroke { .. } => "stroke",
+            Command::Grow { .. } => "grow",
+            Command::Remove { .. } => "remove",
+            Command::Restore { .. } => "restore",
+            Command::SetVisible { .. } => "set_visible",
+            Command::Transform { .. } => "transform",
+            Command::Duplicate { .. } => "duplicate",
+            Command::Appearance { .. } => "appearance",
+            Command::Rename { .. } => "rename",
+            Command::Delete { .. } => "delete",
+            Command::Render { .. } => "render",
+            Command::Export(_) => "export",
+        }
+    }
+    /// Whether it changes the session (as opposed to writing files only).
+    pub fn is_edit(&self) -> bool {
+        !matches!(self, Command::Render { .. } | Command::Export(_))
+    }
+}
+
+impl CameraSource {
+    pub fn validate(&self) -> Result<()> {
+        if let CameraSource::Orbit {
+            center,
+            radius,
+            frames,
+            width,
+            height,
+            fov_deg,
+            elevation_deg,
+        } = self
+        {
+            ensure!(
+                center.iter().all(|v| v.is_finite()) && radius.is_finite() && *radius > 0.0,
+                "orbit centre/radius must be finite, radius > 0"
+            );
+            ensure!(
+                *frames >= 1 && *frames <= 10_000,
+                "orbit frames must be 1..=10000, got {frames}"
+            );
+            ensure!(
+                *width >= 1 && *height >= 1 && *width <= 8192 && *height <= 8192,
+                "orbit image size {width}x{height} is out of range"
+            );
+            ensure!(
+                fov_deg.is_finite() && *fov_deg > 1.0 && *fov_deg < 179.0,
+                "orbit fov {fov_deg} must be in (1, 179) degrees"
+            );
+            ensure!(
+                elevation_deg.is_finite() && elevation_deg.abs() < 90.0,
+                "orbit elevation must be in (-90, 90) degrees"
+            );
+        }
+        Ok(())
+    }
+    pub fn orbit_set(&self) -> Option<CameraSet> {
+        if let CameraSource::Orbit {
+            center,
+            radius,
+            elevation_deg,
+            frames,
+            width,
+            height,
+            fov_deg,
+        } = self
+        {
+            let k = crate::camera::Intrinsics::from_fov_x(*width, *height, fov_deg.to_radians());
+            return Some(CameraSet::orbit(
+                k,
+                Vec3::from(*center),
+                *radius,
+                elevation_deg.to_radians(),
+                *frames,
+            ));
+        }
+        None
+    }
+}

@@ -1,0 +1,470 @@
+//! Edit invariants, scripts and compositions (issue: editing and `isrf run`).
+
+use glam::Vec3;
+use isrf::camera::{Camera, Intrinsics};
+use isrf::command::script::{load_script, parse_script, run_script, save_script, validate_script, Format};
+use isrf::command::{
+    composition, CameraSource, Command, Export, FieldSource, Script, Session, StrokeSource, TransformSpec,
+};
+use isrf::field::{Aabb, FieldBuilder};
+use isrf::render::{render, ColorEdit, RenderOptions};
+use std::path::Path;
+
+const RES: usize = 48;
+
+fn demo(name: &str, scene: &str) -> Command {
+    Command::LoadField {
+        name: name.into(),
+        source: FieldSource::Demo {
+            scene: scene.into(),
+            res: RES,
+            seed: 0,
+        },
+        transform: None,
+    }
+}
+
+fn stroke(object: &str, field: &str, demo_object: &str) -> Command {
+    Command::Stroke {
+        object: object.into(),
+        field: Some(field.into()),
+        polarity: None,
+        source: StrokeSource::Demo {
+            object: demo_object.into(),
+        },
+    }
+}
+
+fn camera() -> Camera {
+    Camera::look_at(
+        Intrinsics::from_fov_x(64, 48, 0.9),
+        Vec3::new(0.4, 0.5, 2.2),
+        Vec3::new(0.0, -0.2, 0.0),
+        Vec3::Y,
+    )
+}
+
+fn image(s: &Session) -> Vec<Vec3> {
+    render(&s.scene(), &camera(), &RenderOptions::default())
+        .unwrap()
+        .out
+        .color
+}
+
+fn max_diff(a: &[Vec3], b: &[Vec3]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (*x - *y).abs().max_element())
+        .fold(0.0, f32::max)
+}
+
+fn tabletop_with_pot() -> Session {
+    let mut s = Session::default();
+    s.apply(&demo("room", "tabletop")).unwrap();
+    s.apply(&stroke("pot", "room", "pot")).unwrap();
+    s
+}
+
+#[test]
+fn remove_then_restore_is_the_original() {
+    let mut s = tabletop_with_pot();
+    let original = image(&s);
+    s.apply(&Command::Remove { object: "pot".into() }).unwrap();
+    let removed = image(&s);
+    assert!(
+        max_diff(&original, &removed) > 0.2,
+        "removing the pot must change the picture"
+    );
+    s.apply(&Command::Restore { object: "pot".into() }).unwrap();
+    assert_eq!(image(&s), original);
+}
+
+#[test]
+fn translate_there_and_back_is_the_original() {
+    let mut s = tabletop_with_pot();
+    let original = image(&s);
+    let t = Vec3::new(-0.41, -0.42, 0.55);
+    s.apply(&Command::Transform {
+        object: "pot".into(),
+        transform: TransformSpec::translation(t),
+    })
+    .unwrap();
+    let moved = image(&s);
+    assert!(max_diff(&original, &moved) > 0.2, "the pot must have moved");
+    s.apply(&Command::Transform {
+        object: "pot".into(),
+        transform: TransformSpec::translation(-t),
+    })
+    .unwrap();
+    // The object layer back at identity plus its source with a hole is the field.
+    assert!(
+        max_diff(&original, &image(&s)) < 2e-3,
+        "{}",
+        max_diff(&original, &image(&s))
+    );
+}
+
+#[test]
+fn rotation_about_the_object_centre_keeps_it_in_place() {
+    let mut s = tabletop_with_pot();
+    let spin = TransformSpec {
+        rotate: [0.0, 180.0, 0.0],
+        ..Default::default()
+    };
+    s.apply(&Command::Transform {
+        object: "pot".into(),
+        transform: spin.clone(),
+    })
+    .unwrap();
+    s.apply(&Command::Transform {
+        object: "pot".into(),
+        transform: spin,
+    })
+    .unwrap();
+    let o = s.object("pot").unwrap();
+    let m = o.transform.matrix3;
+    assert!((glam::Mat3::from(m) - glam::Mat3::IDENTITY).abs_diff_eq(glam::Mat3::ZERO, 1e-5));
+    assert!(Vec3::from(o.transform.translation).length() < 1e-4);
+}
+
+#[test]
+fn composition_with_an_empty_field_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let empty =
+        FieldBuilder::new(Aabb::new(Vec3::splat(-0.5), Vec3::splat(0.5)), [8; 3]).build(|_| 0.0, |_| Vec3::ONE, None);
+    empty.save(&dir.path().join("empty.safetensors")).unwrap();
+    let mut s = tabletop_with_pot();
+    s.apply(&Command::Transform {
+        object: "pot".into(),
+        transform: TransformSpec::translation(Vec3::new(0.1, 0.0, 0.2)),
+    })
+    .unwrap();
+    let before = image(&s);
+    s.base_dir = dir.path().to_path_buf();
+    s.apply(&Command::LoadField {
+        name: "nothing".into(),
+        source: FieldSource::File("empty.safetensors".into()),
+        transform: Some(TransformSpec::translation(Vec3::new(0.1, -0.3, 0.2))),
+    })
+    .unwrap();
+    assert_eq!(image(&s), before);
+}
+
+#[test]
+fn undo_redo_return_to_identical_states() {
+    let mut s = tabletop_with_pot();
+    let a = image(&s);
+    s.apply(&Command::Appearance {
+        object: "pot".into(),
+        edit: ColorEdit {
+            hue: 120.0,
+            ..Default::default()
+        },
+    })
+    .unwrap();
+    let b = image(&s);
+    s.apply(&Command::Remove { object: "pot".into() }).unwrap();
+    let c = image(&s);
+    assert_ne!(a, b);
+    assert_ne!(b, c);
+    assert_eq!(s.log().len(), 4);
+    s.undo().unwrap();
+    assert_eq!(image(&s), b);
+    s.undo().unwrap();
+    assert_eq!(image(&s), a);
+    s.redo().unwrap();
+    assert_eq!(image(&s), b);
+    s.redo().unwrap();
+    assert_eq!(image(&s), c);
+    assert!(s.redo().is_none());
+    // A new edit after an undo drops the redo branch.
+    s.undo().unwrap();
+    s.apply(&Command::SetVisible {
+        target: "pot".into(),
+        visible: false,
+    })
+    .unwrap();
+    assert!(!s.can_redo());
+    // Failed commands change nothing and are not logged.
+    let n = s.log().len();
+    assert!(s
+        .apply(&Command::Remove { object: "nope".into() })
+        .unwrap_err()
+        .to_string()
+        .contains("no object named 'nope'"));
+    assert_eq!(s.log().len(), n);
+}
+
+#[test]
+fn negative_stroke_and_duplicates() {
+    let mut s = tabletop_with_pot();
+    let pot = s.object("pot").unwrap().mask.count();
+    s.apply(&Command::Duplicate {
+        object: "pot".into(),
+        name: "pot2".into(),
+        transform: Some(TransformSpec::translation(Vec3::new(0.5, 0.0, 0.0))),
+    })
+    .unwrap();
+    // The duplicate does not cut its source: the original pot still renders in place.
+    let mut solo = tabletop_with_pot();
+    solo.apply(&Command::SetVisible {
+        target: "room".into(),
+        visible: true,
+    })
+    .unwrap();
+    assert_eq!(s.object("pot2").unwrap().mask.count(), pot);
+    // Strokes for another object on the same field, then subtract it from the pot.
+    s.apply(&stroke("table", "room", "table")).unwrap();
+    let table = s.object("table").unwrap().mask.clone();
+    let before = s.object("pot").unwrap().mask.intersection_count(&table).unwrap();
+    s.apply(&Command::Stroke {
+        object: "pot".into(),
+        field: None,
+        polarity: Some(isrf::segment::Polarity::Negative),
+        source: StrokeSource::Demo { object: "table".into() },
+    })
+    .unwrap();
+    let after = s.object("pot").unwrap().mask.intersection_count(&table).unwrap();
+    assert!(
+        after <= before && after == 0,
+        "a negative stroke on the table removes table voxels from the pot"
+    );
+    // A negative stroke cannot create an object.
+    let e = s
+        .apply(&Command::Stroke {
+            object: "ghost".into(),
+            field: None,
+            polarity: Some(isrf::segment::Polarity::Negative),
+            source: StrokeSource::Demo { object: "mug".into() },
+        })
+        .unwrap_err();
+    assert!(e.to_string().contains("negative stroke"), "{e}");
+}
+
+fn files_under(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut v = vec![];
+    for e in walk(dir) {
+        v.push(e.strip_prefix(dir).unwrap().to_path_buf());
+    }
+    v.sort();
+    v
+}
+
+fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = vec![];
+    for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
+
+fn small_script() -> Script {
+    Script {
+        commands: vec![
+            demo("room", "tabletop"),
+            demo("shelf", "shelf"),
+            Command::SetVisible {
+                target: "shelf".into(),
+                visible: false,
+            },
+            stroke("pot", "room", "pot"),
+            Command::Remove { object: "pot".into() },
+            stroke("digger", "shelf", "excavator"),
+            Command::Transform {
+                object: "digger".into(),
+                transform: TransformSpec::translation(Vec3::new(0.0, -0.095, -0.1)),
+            },
+            Command::Appearance {
+                object: "digger".into(),
+                edit: ColorEdit {
+                    hue: 90.0,
+                    ..Default::default()
+                },
+            },
+            Command::Render {
+                cameras: CameraSource::Orbit {
+                    center: [0.0, -0.2, 0.0],
+                    radius: 2.0,
+                    elevation_deg: 25.0,
+                    frames: 2,
+                    width: 48,
+                    height: 36,
+                    fov_deg: 50.0,
+                },
+                out: "frames".into(),
+                downscale: 1,
+                frames: None,
+                depth: false,
+                background: None,
+            },
+            Command::Export(Export::Masks {
+                object: "digger".into(),
+                cameras: CameraSource::Demo {
+                    field: "room".into(),
+                    eval: true,
+                },
+                out: "masks".into(),
+                downscale: 4,
+            }),
+            Command::Export(Export::Mesh {
+                target: "digger".into(),
+                out: "digger.ply".into(),
+                iso: None,
+            }),
+            Command::Export(Export::Composition {
+                out: "comp.json".into(),
+            }),
+        ],
+    }
+}
+
+#[test]
+fn saved_script_reruns_to_byte_identical_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let script = small_script();
+    for (fmt, name) in [(Format::Ron, "s.ron"), (Format::Json, "s.json")] {
+        let path = dir.path().join(name);
+        save_script(&script, &path).unwrap();
+        let back = load_script(&path).unwrap();
+        assert_eq!(back, script, "{fmt:?} round trip");
+    }
+    let out1 = dir.path().join("out1");
+    let out2 = dir.path().join("out2");
+    run_script(&script, dir.path(), &out1, |_, _, _| {}).unwrap();
+    run_script(
+        &load_script(&dir.path().join("s.ron")).unwrap(),
+        dir.path(),
+        &out2,
+        |_, _, _| {},
+    )
+    .unwrap();
+    let files = files_under(&out1);
+    assert!(files.len() >= 2 + 8 + 3, "{files:?}");
+    assert_eq!(files, files_under(&out2));
+    for f in &files {
+        assert!(
+            std::fs::read(out1.join(f)).unwrap() == std::fs::read(out2.join(f)).unwrap(),
+            "{} differs",
+            f.display()
+        );
+    }
+}
+
+#[test]
+fn invalid_scripts_fail_before_writing_anything() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let cases: Vec<(&str, &str)> = vec![
+        (
+            r#"[load_field(name: "a", source: demo(scene: "tabletop", res: 48)), strok(object: "pot")]"#,
+            "step 2",
+        ),
+        (
+            r#"[load_field(name: "a", source: demo(scene: "tabletop", res: 48)), remove(object: "pot")]"#,
+            "step 2 (remove): no object named 'pot'",
+        ),
+        (
+            r#"[load_field(name: "a", source: demo(scene: "tabletop", res: 48)), set_params(k: 0)]"#,
+            "step 2 (set_params): K must be",
+        ),
+        (
+            r#"[load_field(name: "a", source: file("missing.safetensors"))]"#,
+            "step 1 (load_field): file",
+        ),
+        (
+            r#"[load_field(name: "a", source: demo(scene: "kitchen"))]"#,
+            "unknown demo scene 'kitchen'",
+        ),
+        (
+            r#"[load_field(name: "a", source: demo(scene: "tabletop", res: 48)), stroke(object: "p", source: demo(object: "pot")), transform(object: "p", transform: (scale: (0.0, 1.0, 1.0)))]"#,
+            "step 3 (transform)",
+        ),
+        (
+            r#"[load_field(name: "a", source: demo(scene: "tabletop", res: 48)), stroke(object: "p", source: demo(object: "pot")), export(mesh(target: "p", out: "p.stl"))]"#,
+            ".ply or .glb",
+        ),
+        (
+            r#"[load_field(name: "a", source: demo(scene: "tabletop", res: 48)), load_field(name: "a", source: demo(scene: "shelf", res: 48))]"#,
+            "already used",
+        ),
+    ];
+    for (text, want) in cases {
+        let err = parse_script(text, Format::Ron)
+            .and_then(|s| run_script(&s, dir.path(), &out, |_, _, _| {}))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains(want), "{text}\n -> {err}\n wanted: {want}");
+        assert!(files_under(&out).is_empty(), "nothing may be written for: {text}");
+    }
+    // A runtime failure (a stroke on empty space) after a render also leaves nothing behind.
+    let text = r#"#![enable(implicit_some)]
+    [load_field(name: "a", source: demo(scene: "tabletop", res: 48)),
+     render(cameras: demo(field: "a"), out: "r", frames: 1, downscale: 4),
+     stroke(object: "sky", source: inline((camera: (transform_matrix: ((1,0,0,0),(0,1,0,0),(0,0,1,3),(0,0,0,1)), fl_x: 50, w: 20, h: 20), points: [(1, 1)])))]"#;
+    let s = parse_script(text, Format::Ron).unwrap();
+    validate_script(&s, dir.path()).unwrap();
+    let err = run_script(&s, dir.path(), &out, |_, _, _| {}).unwrap_err().to_string();
+    assert!(err.contains("step 3 (stroke)") && err.contains("empty space"), "{err}");
+    assert!(files_under(&out).is_empty());
+}
+
+#[test]
+fn compositions_round_trip_and_report_changed_files() {
+    let dir = tempfile::tempdir().unwrap();
+    // A field file plus a demo field, one moved and recoloured object.
+    let scene = isrf::demo::build("shelf", RES, 0).unwrap();
+    scene.field.save(&dir.path().join("shelf.safetensors")).unwrap();
+    let mut s = Session::new(dir.path(), dir.path());
+    s.apply(&demo("room", "tabletop")).unwrap();
+    s.apply(&Command::LoadField {
+        name: "shelf".into(),
+        source: FieldSource::File("shelf.safetensors".into()),
+        transform: None,
+    })
+    .unwrap();
+    s.apply(&stroke("pot", "room", "pot")).unwrap();
+    s.apply(&Command::Transform {
+        object: "pot".into(),
+        transform: TransformSpec {
+            translate: [0.1, 0.0, 0.3],
+            rotate: [0.0, 30.0, 0.0],
+            ..Default::default()
+        },
+    })
+    .unwrap();
+    s.apply(&Command::Appearance {
+        object: "pot".into(),
+        edit: ColorEdit {
+            saturation: 0.0,
+            ..Default::default()
+        },
+    })
+    .unwrap();
+    s.apply(&Command::SetVisible {
+        target: "shelf".into(),
+        visible: false,
+    })
+    .unwrap();
+    let before = image(&s);
+    let doc = dir.path().join("comp.json");
+    composition::save(&s, &doc).unwrap();
+    let back = composition::load(&doc, dir.path()).unwrap();
+    assert_eq!(image(&back), before);
+    assert_eq!(back.state.objects.len(), 1);
+    // A changed field file is reported by name.
+    let p = dir.path().join("shelf.safetensors");
+    let mut bytes = std::fs::read(&p).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&p, &bytes).unwrap();
+    let e = composition::load(&doc, dir.path()).unwrap_err().to_string();
+    assert!(e.contains("field 'shelf'") && e.contains("changed"), "{e}");
+    std::fs::remove_file(&p).unwrap();
+    let e = composition::load(&doc, dir.path()).unwrap_err().to_string();
+    assert!(e.contains("field 'shelf'") && e.contains("missing"), "{e}");
+}
