@@ -9,6 +9,7 @@
 pub mod app;
 pub mod bench;
 pub mod camera;
+pub mod command;
 pub mod data;
 pub mod demo;
 pub mod edit;

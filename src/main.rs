@@ -29,6 +29,8 @@ enum Command {
     Segment(cli::segment::Args),
     /// Score segmentation against ground truth (demo scenes or NVOS layout), as JSON.
     Eval(cli::eval::Args),
+    /// Run an edit script (RON or JSON list of commands) headless.
+    Run(cli::run::Args),
     /// Measured figures printed as tables (render: rays/s; segment: stroke-to-mask stages).
     Bench(cli::bench::Args),
 }
@@ -41,6 +43,7 @@ fn main() {
         Command::Render(a) => cli::render::run(a),
         Command::Segment(a) => cli::segment::run(a),
         Command::Eval(a) => cli::eval::run(a),
+        Command::Run(a) => cli::run::run(a),
         Command::Bench(a) => cli::bench::run(a),
     };
     if let Err(e) = result {

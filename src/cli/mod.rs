@@ -6,4 +6,5 @@ pub mod demo;
 pub mod eval;
 pub mod info;
 pub mod render;
+pub mod run;
 pub mod segment;
