@@ -68,6 +68,15 @@ impl ChannelGrid {
             None => out.fill(0.0),
         }
     }
+    /// `out += w × channels of slot s`, with an inlined exact conversion so
+    /// the loop vectorises (no call per value).
+    #[inline]
+    fn add_weighted(&self, s: usize, w: f32, out: &mut [f32]) {
+        let src = &self.data[s * self.channels..(s + 1) * self.channels];
+        for (o, h) in out.iter_mut().zip(src) {
+            *o += w * f16_to_f32_exact(h.to_bits());
+        }
+    }
     /// Trilinear sample at world point `p` into `out` (len = channels).
     /// Returns false (and zeros) outside the grid or where no corner is stored.
     pub fn sample(&self, p: Vec3, out: &mut [f32]) -> bool {
@@ -81,10 +90,7 @@ impl ChannelGrid {
             }
             let Some(s) = self.slot(c.index[k]) else { continue };
             wsum += w;
-            let src = &self.data[s * self.channels..(s + 1) * self.channels];
-            for (o, v) in out.iter_mut().zip(src) {
-                *o += w * v.to_f32();
-            }
+            self.add_weighted(s, w, out);
         }
         if wsum <= 1e-6 {
             out.fill(0.0);
@@ -96,6 +102,26 @@ impl ChannelGrid {
         }
         true
     }
+}
+
+/// f16 bits → f32, the same value and bits as `f16::to_f32` for every input
+/// (NaNs quieted the same way), in branch-free integer and float operations
+/// that the compiler vectorises.
+#[inline(always)]
+pub fn f16_to_f32_exact(h: u16) -> f32 {
+    let h = h as u32;
+    let sign = (h & 0x8000) << 16;
+    let abs = h & 0x7fff;
+    // Finite values: exponent and mantissa shifted into place, rescaled by
+    // 2^(127 − 15). Exact, subnormals included: multiplying by a power of two
+    // whose result is a normal f32 rounds nothing.
+    let finite = (f32::from_bits(abs << 13) * f32::from_bits(0x7780_0000)).to_bits();
+    let special = if abs > 0x7c00 {
+        0x7fc0_0000 | (abs & 0x3ff) << 13 // NaN, quiet bit set
+    } else {
+        0x7f80_0000 // infinity
+    };
+    f32::from_bits(sign | if abs >= 0x7c00 { special } else { finite })
 }
 
 /// Density activation applied *after* trilinear interpolation of the raw grid
@@ -162,5 +188,18 @@ impl DensityGrid {
     #[inline]
     pub fn sigma_at(&self, i: usize) -> f32 {
         self.activation.apply(self.raw[i])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn exact_f16_conversion_matches_half_for_every_value() {
+        for h in 0..=u16::MAX {
+            let want = f16::from_bits(h).to_f32().to_bits();
+            assert_eq!(f16_to_f32_exact(h).to_bits(), want, "f16 bits {h:#06x}");
+        }
     }
 }
