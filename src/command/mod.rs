@@ -334,6 +334,28 @@ impl Command {
             Command::Export(_) => "export",
         }
     }
+    /// For `SetParams`: `current` with the parameters it sets, validated.
+    pub fn merged_params(&self, current: &crate::segment::SegmentParams) -> Result<crate::segment::SegmentParams> {
+        let mut p = *current;
+        if let Command::SetParams {
+            k,
+            theta,
+            sigma_f,
+            sigma_s,
+            tau,
+            growth,
+        } = self
+        {
+            p.k = k.unwrap_or(p.k);
+            p.theta = theta.unwrap_or(p.theta);
+            p.grow.sigma_f = sigma_f.unwrap_or(p.grow.sigma_f);
+            p.grow.sigma_s = sigma_s.unwrap_or(p.grow.sigma_s);
+            p.grow.tau = tau.unwrap_or(p.grow.tau);
+            p.growth = growth.unwrap_or(p.growth);
+        }
+        p.validate()?;
+        Ok(p)
+    }
     /// Whether it changes the session (as opposed to writing files only).
     pub fn is_edit(&self) -> bool {
         !matches!(self, Command::Render { .. } | Command::Export(_))

@@ -221,22 +221,7 @@ fn check_step(
             need(fields, "field", field)?;
             transform.validate()?;
         }
-        Command::SetParams {
-            k,
-            theta,
-            sigma_f,
-            sigma_s,
-            tau,
-            growth,
-        } => {
-            params.k = k.unwrap_or(params.k);
-            params.theta = theta.unwrap_or(params.theta);
-            params.grow.sigma_f = sigma_f.unwrap_or(params.grow.sigma_f);
-            params.grow.sigma_s = sigma_s.unwrap_or(params.grow.sigma_s);
-            params.grow.tau = tau.unwrap_or(params.grow.tau);
-            params.growth = growth.unwrap_or(params.growth);
-            params.validate()?;
-        }
+        Command::SetParams { .. } => *params = c.merged_params(params)?,
         Command::Stroke {
             object, field, source, ..
         } => {

@@ -201,23 +201,7 @@ impl Session {
                 let pivot = f.transform.transform_point3(f.field.bounds().center());
                 f.transform = transform.affine(pivot) * f.transform;
             }
-            Command::SetParams {
-                k,
-                theta,
-                sigma_f,
-                sigma_s,
-                tau,
-                growth,
-            } => {
-                let p = &mut st.params;
-                p.k = k.unwrap_or(p.k);
-                p.theta = theta.unwrap_or(p.theta);
-                p.grow.sigma_f = sigma_f.unwrap_or(p.grow.sigma_f);
-                p.grow.sigma_s = sigma_s.unwrap_or(p.grow.sigma_s);
-                p.grow.tau = tau.unwrap_or(p.grow.tau);
-                p.growth = growth.unwrap_or(p.growth);
-                p.validate()?;
-            }
+            Command::SetParams { .. } => st.params = cmd.merged_params(&st.params)?,
             Command::Stroke {
                 object,
                 field,
