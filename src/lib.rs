@@ -18,6 +18,7 @@ pub mod eval;
 pub mod field;
 pub mod render;
 pub mod segment;
+pub mod train;
 pub mod util;
 
 pub use error::{Error, Result};

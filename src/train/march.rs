@@ -1,0 +1,433 @@
+//! Hand-written forward and backward passes of volume rendering for one ray,
+//! the same function the CPU reference renderer computes
+//! ([`crate::render`]): samples at tᵢ = (i + ½)δ along a unit ray inside the
+//! field's box, σᵢ = softplus(trilinear(raw) + shift), αᵢ = 1 − exp(−σᵢδ),
+//! Tᵢ = Πⱼ<ᵢ(1 − αⱼ), wᵢ = Tᵢαᵢ, C = Σ wᵢcᵢ + T·background,
+//! cᵢ = sigmoid(Σₖ SHₖ(dir)·trilinear(coeffs)), features Φ = Σ wᵢφᵢ.
+//!
+//! Backward (dL/dC = g, dL/dΦ = h), with "after" sums Aᵢ = Σⱼ>ᵢ wⱼcⱼ + T·bg:
+//!   dL/dcᵢ = wᵢ g,   dL/dσᵢ = δ·[g·(Tᵢ₊₁cᵢ − Aᵢ) + h·(Tᵢ₊₁φᵢ − Bᵢ)]
+//! (B the same sum for features without background), then through the
+//! sigmoid / softplus and the trilinear weights into per-voxel gradients.
+//!
+//! Two shortcuts, both off when exactness matters (tests): samples whose
+//! weight is below `weight_floor` are not shaded (their colour counts as
+//! black, so their density still gets the exact gradient of what was
+//! computed), and rays stop once T < `min_transmittance` (as the renderer).
+
+use super::model::{bit, set_bit, Model, BLOCK};
+use crate::camera::Ray;
+use crate::field::sh;
+use glam::Vec3;
+
+#[derive(Clone, Copy, Debug)]
+pub struct MarchOpts {
+    /// Sample spacing δ in field units.
+    pub step: f32,
+    pub background: Vec3,
+    /// Samples with weight at or below this are not shaded.
+    pub weight_floor: f32,
+    pub min_transmittance: f32,
+    /// Render (and train) semantic features.
+    pub features: bool,
+}
+
+#[derive(Clone, Copy, Debug, Default)]
+struct Sample {
+    base: u32,
+    frac: [f32; 3],
+    t: f32,
+    alpha: f32,
+    trans: f32,
+    /// dσ/draw at the interpolated raw value.
+    dsig: f32,
+    color: [f32; 3],
+    shaded: bool,
+}
+
+/// Per-thread scratch: the samples of the last forward pass.
+#[derive(Default)]
+pub struct Scratch {
+    samples: Vec<Sample>,
+    /// Features of shaded samples, `samples × channels` (unshaded rows zero).
+    feats: Vec<f32>,
+    tmp: Vec<f32>,
+    final_trans: f32,
+    color: Vec3,
+    pub features: Vec<f32>,
+}
+
+/// What one ray renders to.
+#[derive(Clone, Copy, Debug)]
+pub struct RayOut {
+    pub color: Vec3,
+    pub opacity: f32,
+    /// Σ wᵢ tᵢ.
+    pub depth: f32,
+    /// Samples evaluated (for throughput figures).
+    pub samples: u32,
+}
+
+/// Gradient accumulators of one thread; `marks` flag every grid point that
+/// received a gradient since the last optimizer step.
+#[derive(Clone, Debug)]
+pub struct GradBuf {
+    pub density: Vec<f32>,
+    pub sh: Vec<f32>,
+    pub marks: Vec<u64>,
+    pub feat: Vec<f32>,
+    pub feat_marks: Vec<u64>,
+}
+
+impl GradBuf {
+    pub fn new(model: &Model) -> Self {
+        let n = model.len();
+        let (nf, fc) = model.features.as_ref().map_or((0, 0), |f| (f.geom.len(), f.channels));
+        GradBuf {
+            density: vec![0.0; n],
+            sh: vec![0.0; n * model.sh_stride()],
+            marks: vec![0; n.div_ceil(64)],
+            feat: vec![0.0; nf * fc],
+            feat_marks: vec![0; nf.div_ceil(64)],
+        }
+    }
+    /// True when this buffer's shape fits `model` (after resampling it won't).
+    pub fn fits(&self, model: &Model) -> bool {
+        let nf = model.features.as_ref().map_or(0, |f| f.geom.len() * f.channels);
+        self.density.len() == model.len() && self.sh.len() == model.len() * model.sh_stride() && self.feat.len() == nf
+    }
+}
+
+/// Precomputed per-grid constants for fast trilinear lookups.
+#[derive(Clone, Copy)]
+struct Lattice {
+    min: Vec3,
+    scale: Vec3,
+    hi: Vec3,
+    res: [usize; 3],
+    off: [usize; 8],
+}
+
+impl Lattice {
+    fn new(g: &crate::field::GridGeom) -> Self {
+        let [nx, ny, nz] = g.res;
+        let n = Vec3::new((nx - 1) as f32, (ny - 1) as f32, (nz - 1) as f32);
+        let mut off = [0; 8];
+        for (k, o) in off.iter_mut().enumerate() {
+            *o = (k & 1) + nx * (((k >> 1) & 1) + ny * ((k >> 2) & 1));
+        }
+        Lattice {
+            min: g.bounds.min,
+            scale: n / g.bounds.size(),
+            hi: n,
+            res: g.res,
+            off,
+        }
+    }
+    /// Continuous grid coordinates of `p`.
+    #[inline]
+    fn grid(&self, p: Vec3) -> Vec3 {
+        (p - self.min) * self.scale
+    }
+    /// (base index, fractions) of the cell holding grid point `g`, or `None`
+    /// outside the grid.
+    #[inline]
+    fn cell(&self, g: Vec3) -> Option<(usize, [f32; 3])> {
+        if !(g.x >= 0.0 && g.y >= 0.0 && g.z >= 0.0 && g.x <= self.hi.x && g.y <= self.hi.y && g.z <= self.hi.z) {
+            return None;
+        }
+        let [nx, ny, nz] = self.res;
+        let x0 = (g.x as usize).min(nx - 2);
+        let y0 = (g.y as usize).min(ny - 2);
+        let z0 = (g.z as usize).min(nz - 2);
+        Some((
+            x0 + nx * (y0 + ny * z0),
+            [g.x - x0 as f32, g.y - y0 as f32, g.z - z0 as f32],
+        ))
+    }
+}
+
+#[inline]
+fn weights(f: [f32; 3]) -> [f32; 8] {
+    let [fx, fy, fz] = f;
+    let (gx, gy, gz) = (1.0 - fx, 1.0 - fy, 1.0 - fz);
+    [
+        gx * gy * gz,
+        fx * gy * gz,
+        gx * fy * gz,
+        fx * fy * gz,
+        gx * gy * fz,
+        fx * gy * fz,
+        gx * fy * fz,
+        fx * fy * fz,
+    ]
+}
+
+#[inline]
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// σ and dσ/draw for softplus(raw + shift).
+#[inline]
+fn softplus_d(x: f32) -> (f32, f32) {
+    if x > 20.0 {
+        (x, 1.0)
+    } else {
+        let e = x.exp();
+        (e.ln_1p(), e / (1.0 + e))
+    }
+}
+
+/// The parameter interval and first sample index of a ray in the model's
+/// box, or `None` when it misses.
+fn span(model: &Model, ray: &Ray, step: f32) -> Option<(i64, f32)> {
+    let (t0, t1) = model.geom.bounds.intersect(ray.origin, ray.dir)?;
+    Some(((t0 / step - 0.5).ceil().max(0.0) as i64, t1))
+}
+
+/// Forward pass of one ray; fills `scratch` for [`backward`].
+pub fn forward(model: &Model, ray: &Ray, opts: &MarchOpts, scratch: &mut Scratch) -> RayOut {
+    match model.degree {
+        0 => forward_k::<1>(model, ray, opts, scratch),
+        1 => forward_k::<4>(model, ray, opts, scratch),
+        _ => forward_k::<9>(model, ray, opts, scratch),
+    }
+}
+
+fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch) -> RayOut {
+    s.samples.clear();
+    s.feats.clear();
+    let fc = if opts.features {
+        model.features.as_ref().map_or(0, |f| f.channels)
+    } else {
+        0
+    };
+    s.features.clear();
+    s.features.resize(fc, 0.0);
+    s.tmp.resize(fc, 0.0);
+    let mut trans = 1.0f32;
+    let mut color = Vec3::ZERO;
+    let mut depth = 0.0;
+    let lat = Lattice::new(&model.geom);
+    let flat = model.features.as_ref().map(|f| Lattice::new(&f.geom));
+    let basis = sh::basis(ray.dir);
+    let dt = opts.step;
+    let stride = 3 * K;
+    let bd = model.block_dims;
+    let dir_g = ray.dir * lat.scale;
+    if let Some((mut i, t1)) = span(model, ray, dt) {
+        loop {
+            let t = (i as f32 + 0.5) * dt;
+            if t > t1 || trans < opts.min_transmittance {
+                break;
+            }
+            let g = lat.grid(ray.at(t));
+            let Some((base, frac)) = lat.cell(g) else {
+                i += 1;
+                continue;
+            };
+            // Empty block: jump to the first sample past it.
+            let b = [0, 1, 2].map(|a| ((g[a] as usize) / BLOCK).min(bd[a] - 1));
+            if !model.blocks[b[0] + bd[0] * (b[1] + bd[1] * b[2])] {
+                let mut exit = f32::INFINITY;
+                for a in 0..3 {
+                    let (lo, hi) = ((b[a] * BLOCK) as f32, ((b[a] + 1) * BLOCK) as f32);
+                    let d = dir_g[a];
+                    if d > 0.0 {
+                        exit = exit.min((hi - g[a]) / d);
+                    } else if d < 0.0 {
+                        exit = exit.min((lo - g[a]) / d);
+                    }
+                }
+                let next = ((t + exit.max(0.0)) / dt - 0.5).ceil() as i64;
+                i = next.max(i + 1);
+                continue;
+            }
+            i += 1;
+            if model.cells[base] == 0 {
+                continue;
+            }
+            let w8 = weights(frac);
+            let mut raw = 0.0;
+            for k in 0..8 {
+                raw += w8[k] * model.density[base + lat.off[k]];
+            }
+            let (sigma, dsig) = softplus_d(raw + model.shift);
+            let alpha = 1.0 - (-sigma * dt).exp();
+            let w = trans * alpha;
+            let mut smp = Sample {
+                base: base as u32,
+                frac,
+                t,
+                alpha,
+                trans,
+                dsig,
+                color: [0.0; 3],
+                shaded: false,
+            };
+            if w > opts.weight_floor {
+                let mut acc = [[0.0f32; K]; 3];
+                for k in 0..8 {
+                    let v = (base + lat.off[k]) * stride;
+                    let src = &model.sh[v..v + stride];
+                    let wk = w8[k];
+                    for c in 0..3 {
+                        for j in 0..K {
+                            acc[c][j] += wk * src[c * K + j];
+                        }
+                    }
+                }
+                let mut c3 = [0.0f32; 3];
+                for c in 0..3 {
+                    let z: f32 = (0..K).map(|j| acc[c][j] * basis[j]).sum();
+                    c3[c] = sigmoid(z);
+                }
+                smp.color = c3;
+                smp.shaded = true;
+                color += w * Vec3::from(c3);
+                depth += w * t;
+                if fc > 0 {
+                    let start = s.feats.len();
+                    s.feats.resize(start + fc, 0.0);
+                    if let (Some(fl), Some(fg)) = (&flat, &model.features) {
+                        if let Some((fb, ff)) = fl.cell(fl.grid(ray.at(t))) {
+                            let fw = weights(ff);
+                            let row = &mut s.feats[start..start + fc];
+                            for k in 0..8 {
+                                let v = (fb + fl.off[k]) * fc;
+                                for (o, x) in row.iter_mut().zip(&fg.data[v..v + fc]) {
+                                    *o += fw[k] * x;
+                                }
+                            }
+                            for (o, x) in s.features.iter_mut().zip(row.iter()) {
+                                *o += w * x;
+                            }
+                        }
+                    }
+                }
+            } else if fc > 0 {
+                let start = s.feats.len();
+                s.feats.resize(start + fc, 0.0);
+            }
+            s.samples.push(smp);
+            trans *= 1.0 - alpha;
+        }
+    }
+    s.final_trans = trans;
+    s.color = color + trans * opts.background;
+    RayOut {
+        color: s.color,
+        opacity: 1.0 - trans,
+        depth,
+        samples: s.samples.len() as u32,
+    }
+}
+
+/// Backward pass for the ray of the last [`forward`] into `grads`, given
+/// dL/dC (`g`) and dL/dΦ (`h`, empty when features are not trained).
+pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: Vec3, h: &[f32], grads: &mut GradBuf) {
+    match model.degree {
+        0 => backward_k::<1>(model, ray, opts, s, g, h, grads),
+        1 => backward_k::<4>(model, ray, opts, s, g, h, grads),
+        _ => backward_k::<9>(model, ray, opts, s, g, h, grads),
+    }
+}
+
+fn backward_k<const K: usize>(
+    model: &Model,
+    ray: &Ray,
+    opts: &MarchOpts,
+    s: &mut Scratch,
+    g: Vec3,
+    h: &[f32],
+    grads: &mut GradBuf,
+) {
+    let lat = Lattice::new(&model.geom);
+    let fc = if opts.features && !h.is_empty() {
+        model.features.as_ref().map_or(0, |f| f.channels)
+    } else {
+        0
+    };
+    let flat = model.features.as_ref().map(|f| Lattice::new(&f.geom));
+    let basis = sh::basis(ray.dir);
+    let stride = 3 * K;
+    let dt = opts.step;
+    let g3 = g.to_array();
+    // "After" sums: colour includes the background seen through the end.
+    let mut after = s.final_trans * opts.background;
+    let after_f = &mut s.tmp;
+    after_f.clear();
+    after_f.resize(fc, 0.0);
+    for (idx, smp) in s.samples.iter().enumerate().rev() {
+        let w = smp.trans * smp.alpha;
+        let t_next = smp.trans * (1.0 - smp.alpha);
+        let base = smp.base as usize;
+        let w8 = weights(smp.frac);
+        let c = Vec3::from(smp.color);
+        let mut dsigma = if smp.shaded {
+            g.dot(t_next * c - after)
+        } else {
+            -g.dot(after)
+        };
+        if smp.shaded {
+            // Colour: through the sigmoid, the SH basis and the weights.
+            let mut d = [[0.0f32; K]; 3];
+            for ch in 0..3 {
+                let dz = w * g3[ch] * smp.color[ch] * (1.0 - smp.color[ch]);
+                for j in 0..K {
+                    d[ch][j] = dz * basis[j];
+                }
+            }
+            for k in 0..8 {
+                let v = base + lat.off[k];
+                let dst = &mut grads.sh[v * stride..(v + 1) * stride];
+                let wk = w8[k];
+                for ch in 0..3 {
+                    for j in 0..K {
+                        dst[ch * K + j] += wk * d[ch][j];
+                    }
+                }
+            }
+            after += w * c;
+            if fc > 0 {
+                let phi = &s.feats[idx * fc..(idx + 1) * fc];
+                let mut df = 0.0;
+                for ((&hh, &p), a) in h.iter().zip(phi).zip(after_f.iter_mut()) {
+                    df += hh * (t_next * p - *a);
+                    *a += w * p;
+                }
+                dsigma += df;
+                if let (Some(fl), Some(fg)) = (&flat, &model.features) {
+                    if let Some((fb, ff)) = fl.cell(fl.grid(ray.at(smp.t))) {
+                        let fw = weights(ff);
+                        for k in 0..8 {
+                            let v = fb + fl.off[k];
+                            let dst = &mut grads.feat[v * fc..(v + 1) * fc];
+                            let scale = w * fw[k];
+                            for (o, &hh) in dst.iter_mut().zip(h) {
+                                *o += scale * hh;
+                            }
+                            set_bit(&mut grads.feat_marks, v);
+                        }
+                        let _ = fg;
+                    }
+                }
+            }
+        } else if fc > 0 {
+            let dfe: f32 = h.iter().zip(after_f.iter()).map(|(a, b)| a * b).sum();
+            dsigma -= dfe;
+        }
+        let draw = dsigma * dt * smp.dsig;
+        for k in 0..8 {
+            let v = base + lat.off[k];
+            grads.density[v] += w8[k] * draw;
+            set_bit(&mut grads.marks, v);
+        }
+    }
+}
+
+/// True when grid point `i` trains (used by tests and the optimizer).
+pub fn is_active(model: &Model, i: usize) -> bool {
+    bit(&model.active, i)
+}

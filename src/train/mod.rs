@@ -1,0 +1,22 @@
+//! Fitting a field to posed images (DESIGN.md "train"): a DVGO-style dense
+//! density grid with dense spherical-harmonic colour, trained on the CPU with
+//! hand-written forward/backward passes ([`march`]) and sparse Adam
+//! ([`optim`]), coarse to fine with pruning ([`trainer`]); then, optionally,
+//! a dense feature grid distilled from teacher features ([`teacher`]).
+//!
+//! The forward pass is the function the reference renderer computes (same
+//! samples, activation, interpolation and SH), so a trained model exported
+//! with [`Model::to_field`] renders as it trained.
+
+pub mod march;
+pub mod model;
+pub mod optim;
+pub mod rays;
+pub mod teacher;
+pub mod trainer;
+
+pub use march::{GradBuf, MarchOpts, RayOut, Scratch};
+pub use model::{DenseGrid, Model};
+pub use rays::{default_bounds, RaySet};
+pub use teacher::{FeatureMap, FeatureMaps};
+pub use trainer::{psnr_of, step_of, StepStats, TrainConfig, Trainer};

@@ -1,0 +1,398 @@
+//! The trainable field: flat f32 parameter arrays over one grid geometry
+//! (the same conventions as [`crate::field`]: corner-aligned grid points,
+//! x fastest), plus the occupancy masks that decide which voxels train.
+//!
+//! - `density`: raw values; σ = softplus(raw + shift) in the field's own
+//!   length units (the renderer's [`Activation::Softplus`]).
+//! - `sh`: per voxel `3·K` spherical-harmonic coefficients, K = (degree+1)²,
+//!   laid out `[r0..rK, g0..gK, b0..bK]`; colour = sigmoid(Σ cₖ Yₖ(dir))
+//!   exactly as [`crate::field::sh::color`] evaluates degree 2.
+//! - `features`: optional dense semantic feature grid with its own (usually
+//!   coarser) resolution over the same bounds.
+//!
+//! Pruned voxels hold [`PRUNED_RAW`] and never train; a sample whose eight
+//! corners are all pruned is skipped, which is exact up to σ ≈ 1e-13.
+
+use crate::error::Result;
+use crate::field::geom::check_res;
+use crate::field::sh::SH_COEFFS;
+use crate::field::{Aabb, Activation, Appearance, ChannelGrid, DensityGrid, Features, Field, GridGeom};
+use glam::Vec3;
+use half::f16;
+use rayon::prelude::*;
+
+/// Raw density of pruned voxels: softplus(−30) ≈ 1e-13, empty for any
+/// renderer threshold.
+pub const PRUNED_RAW: f32 = -30.0;
+/// Cells per side of a skip block (empty-space skipping while marching).
+pub const BLOCK: usize = 8;
+
+/// Number of SH coefficients per colour channel for a degree.
+pub fn sh_coeffs(degree: usize) -> usize {
+    (degree + 1) * (degree + 1)
+}
+
+/// A dense f32 channel grid (features during training).
+#[derive(Clone, Debug)]
+pub struct DenseGrid {
+    pub geom: GridGeom,
+    pub channels: usize,
+    pub data: Vec<f32>,
+}
+
+#[derive(Clone, Debug)]
+pub struct Model {
+    pub geom: GridGeom,
+    /// Softplus shift of the density activation.
+    pub shift: f32,
+    pub degree: usize,
+    pub density: Vec<f32>,
+    pub sh: Vec<f32>,
+    pub features: Option<DenseGrid>,
+    /// Trainable voxels (not pruned), one bit per grid point.
+    pub active: Vec<u64>,
+    /// Per cell, indexed by its lowest corner: 1 when any corner is active.
+    pub cells: Vec<u8>,
+    /// Per block of `BLOCK³` cells: true when any cell in it is active.
+    pub blocks: Vec<bool>,
+    pub block_dims: [usize; 3],
+}
+
+/// Bit helpers over `u64` words.
+#[inline]
+pub fn bit(words: &[u64], i: usize) -> bool {
+    words[i >> 6] >> (i & 63) & 1 == 1
+}
+#[inline]
+pub fn set_bit(words: &mut [u64], i: usize) {
+    words[i >> 6] |= 1 << (i & 63);
+}
+
+impl Model {
+    /// A fresh model: every voxel active, density at `init_sigma`, grey colour.
+    pub fn new(geom: GridGeom, degree: usize, shift: f32, init_sigma: f32) -> Result<Model> {
+        check_res(geom.res, "training grid")?;
+        crate::ensure!(degree <= 2, "SH degree must be 0, 1 or 2, got {degree}");
+        crate::ensure!(
+            init_sigma > 0.0 && init_sigma.is_finite(),
+            "initial density must be positive"
+        );
+        let n = geom.len();
+        let raw0 = inverse_softplus(init_sigma) - shift;
+        let mut m = Model {
+            geom,
+            shift,
+            degree,
+            density: vec![raw0; n],
+            sh: vec![0.0; n * 3 * sh_coeffs(degree)],
+            features: None,
+            active: vec![u64::MAX; n.div_ceil(64)],
+            cells: vec![],
+            blocks: vec![],
+            block_dims: [1; 3],
+        };
+        m.clear_tail();
+        m.refresh_masks();
+        Ok(m)
+    }
+
+    pub fn len(&self) -> usize {
+        self.geom.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.geom.is_empty()
+    }
+    /// SH values per voxel (3·K).
+    pub fn sh_stride(&self) -> usize {
+        3 * sh_coeffs(self.degree)
+    }
+    pub fn activation(&self) -> Activation {
+        Activation::Softplus { shift: self.shift }
+    }
+    pub fn sigma_at(&self, i: usize) -> f32 {
+        self.activation().apply(self.density[i])
+    }
+    pub fn active_count(&self) -> usize {
+        self.active.iter().map(|w| w.count_ones() as usize).sum()
+    }
+
+    fn clear_tail(&mut self) {
+        let n = self.len();
+        if n % 64 != 0 {
+            let last = self.active.len() - 1;
+            self.active[last] &= (1u64 << (n % 64)) - 1;
+        }
+    }
+
+    /// Recomputes the cell and block masks from `active`; pruned voxels get
+    /// [`PRUNED_RAW`] so that what is skipped is really empty.
+    pub fn refresh_masks(&mut self) {
+        let g = self.geom;
+        let [nx, ny, nz] = g.res;
+        let active = &self.active;
+        self.density.par_iter_mut().enumerate().for_each(|(i, d)| {
+            if !bit(active, i) {
+                *d = PRUNED_RAW;
+            }
+        });
+        let mut cells = vec![0u8; g.len()];
+        cells.par_chunks_mut(nx).enumerate().for_each(|(row, out)| {
+            let (y, z) = (row % ny, row / ny);
+            if y + 1 >= ny || z + 1 >= nz {
+                return;
+            }
+            for (x, c) in out.iter_mut().enumerate().take(nx - 1) {
+                let base = g.index(x, y, z);
+                let any = (0..8).any(|k| {
+                    let (dx, dy, dz) = (k & 1, (k >> 1) & 1, (k >> 2) & 1);
+                    bit(active, base + dx + nx * (dy + ny * dz))
+                });
+                *c = any as u8;
+            }
+        });
+        let bd = [0, 1, 2].map(|a| (g.res[a] - 1).div_ceil(BLOCK).max(1));
+        let blocks = (0..bd[0] * bd[1] * bd[2])
+            .into_par_iter()
+            .map(|b| {
+                let (bx, by, bz) = (b % bd[0], (b / bd[0]) % bd[1], b / (bd[0] * bd[1]));
+                let r = |c: usize, a: usize| c * BLOCK..((c + 1) * BLOCK).min(g.res[a] - 1);
+                r(bz, 2).any(|z| r(by, 1).any(|y| r(bx, 0).any(|x| cells[g.index(x, y, z)] != 0)))
+            })
+            .collect();
+        self.cells = cells;
+        self.blocks = blocks;
+        self.block_dims = bd;
+    }
+
+    /// Prunes voxels: keeps those with σ·`step` ≥ `alpha_floor`·… (per-sample
+    /// opacity above the floor) and their neighbours within `dilate` voxels.
+    /// Already pruned voxels stay pruned. Returns the active count.
+    pub fn prune(&mut self, step: f32, alpha_floor: f32, dilate: usize) -> usize {
+        let g = self.geom;
+        let act = self.activation();
+        let keep: Vec<u64> = {
+            let d = &self.density;
+            let active = &self.active;
+            let n = g.len();
+            (0..n.div_ceil(64))
+                .into_par_iter()
+                .map(|w| {
+                    let mut bits = 0u64;
+                    for b in 0..64 {
+                        let i = w * 64 + b;
+                        if i < n && bit(active, i) && 1.0 - (-act.apply(d[i]) * step).exp() >= alpha_floor {
+                            bits |= 1 << b;
+                        }
+                    }
+                    bits
+                })
+                .collect()
+        };
+        let grown = dilate_bits(&keep, g.res, dilate);
+        for (a, k) in self.active.iter_mut().zip(&grown) {
+            *a &= *k;
+        }
+        self.refresh_masks();
+        self.active_count()
+    }
+
+    /// The model resampled on `geom` (trilinear in raw values, like the
+    /// renderer). Points outside the old box get an empty, grey voxel.
+    /// Activity: a new voxel is active when the old grid is active there.
+    pub fn resampled(&self, geom: GridGeom) -> Result<Model> {
+        check_res(geom.res, "training grid")?;
+        let n = geom.len();
+        let k = self.sh_stride();
+        let mut density = vec![PRUNED_RAW; n];
+        let mut sh = vec![0.0f32; n * k];
+        let mut active = vec![0u64; n.div_ceil(64)];
+        density
+            .par_iter_mut()
+            .zip(sh.par_chunks_mut(k))
+            .enumerate()
+            .for_each(|(i, (d, s))| {
+                let p = geom.point_of(i);
+                if let Some(c) = self.geom.corners(p) {
+                    let mut r = 0.0;
+                    for j in 0..8 {
+                        let w = c.weight[j];
+                        r += w * self.density[c.index[j]];
+                        let src = &self.sh[c.index[j] * k..(c.index[j] + 1) * k];
+                        for (o, v) in s.iter_mut().zip(src) {
+                            *o += w * v;
+                        }
+                    }
+                    *d = r;
+                }
+            });
+        // Active where any corner of the old cell holding the point is active.
+        active.par_iter_mut().enumerate().for_each(|(w, bits)| {
+            for b in 0..64 {
+                let i = w * 64 + b;
+                if i >= n {
+                    break;
+                }
+                if let Some(c) = self.geom.corners(geom.point_of(i)) {
+                    if (0..8).any(|j| c.weight[j] > 0.0 && bit(&self.active, c.index[j])) {
+                        *bits |= 1 << b;
+                    }
+                }
+            }
+        });
+        let features = self.features.as_ref().map(|f| f.clone());
+        let mut m = Model {
+            geom,
+            shift: self.shift,
+            degree: self.degree,
+            density,
+            sh,
+            features,
+            active,
+            cells: vec![],
+            blocks: vec![],
+            block_dims: [1; 3],
+        };
+        m.clear_tail();
+        m.refresh_masks();
+        Ok(m)
+    }
+
+    /// The same model with SH degree raised to `degree` (new coefficients 0).
+    pub fn with_degree(mut self, degree: usize) -> Model {
+        if degree <= self.degree {
+            return self;
+        }
+        let (ko, kn) = (sh_coeffs(self.degree), sh_coeffs(degree));
+        let n = self.len();
+        let mut sh = vec![0.0f32; n * 3 * kn];
+        sh.par_chunks_mut(3 * kn)
+            .zip(self.sh.par_chunks(3 * ko))
+            .for_each(|(d, s)| {
+                for c in 0..3 {
+                    d[c * kn..c * kn + ko].copy_from_slice(&s[c * ko..(c + 1) * ko]);
+                }
+            });
+        self.sh = sh;
+        self.degree = degree;
+        self
+    }
+
+    /// A feature grid of `channels` zeros at `res` over the model's bounds.
+    pub fn add_features(&mut self, res: [usize; 3], channels: usize) -> Result<()> {
+        check_res(res, "feature grid")?;
+        crate::ensure!((1..=4096).contains(&channels), "bad feature channel count {channels}");
+        let geom = GridGeom::new(self.geom.bounds, res);
+        self.features = Some(DenseGrid {
+            geom,
+            channels,
+            data: vec![0.0; geom.len() * channels],
+        });
+        Ok(())
+    }
+
+    /// The field the renderer reads: raw density, SH padded to degree 2 (or
+    /// plain RGB never: colour always goes through the sigmoid) in f16.
+    pub fn to_field(&self) -> Field {
+        let k = sh_coeffs(self.degree);
+        let n = self.len();
+        let mut sh = vec![f16::ZERO; n * 3 * SH_COEFFS];
+        sh.par_chunks_mut(3 * SH_COEFFS)
+            .zip(self.sh.par_chunks(3 * k))
+            .for_each(|(d, s)| {
+                for c in 0..3 {
+                    for j in 0..k {
+                        d[c * SH_COEFFS + j] = f16::from_f32(s[c * k + j]);
+                    }
+                }
+            });
+        let features = self.features.as_ref().map(|f| {
+            Features::Grid(ChannelGrid::dense(
+                f.geom,
+                f.channels,
+                f.data.par_iter().map(|&v| f16::from_f32(v)).collect(),
+            ))
+        });
+        Field::new(
+            DensityGrid {
+                geom: self.geom,
+                raw: self.density.clone(),
+                activation: self.activation(),
+            },
+            Appearance::Sh2(ChannelGrid::dense(self.geom, 3 * SH_COEFFS, sh)),
+            features,
+            None,
+        )
+    }
+
+    /// Smallest box holding the voxels whose per-sample opacity at `step`
+    /// reaches `alpha_floor`, padded by `pad` voxels and clipped to the grid;
+    /// `None` when no voxel does.
+    pub fn occupied_bounds(&self, step: f32, alpha_floor: f32, pad: usize) -> Option<Aabb> {
+        let g = self.geom;
+        let act = self.activation();
+        let (lo, hi) = (0..g.len())
+            .into_par_iter()
+            .filter(|&i| 1.0 - (-act.apply(self.density[i]) * step).exp() >= alpha_floor)
+            .map(|i| {
+                let c = g.coords(i);
+                (c, c)
+            })
+            .reduce_with(|a, b| {
+                (
+                    [0, 1, 2].map(|k| a.0[k].min(b.0[k])),
+                    [0, 1, 2].map(|k| a.1[k].max(b.1[k])),
+                )
+            })?;
+        let lo = [0, 1, 2].map(|k| lo[k].saturating_sub(pad));
+        let hi = [0, 1, 2].map(|k| (hi[k] + pad).min(g.res[k] - 1));
+        let p0 = g.point(lo[0], lo[1], lo[2]);
+        let p1 = g.point(hi[0], hi[1], hi[2]);
+        // Keep at least one voxel of extent per axis.
+        let sp = g.spacing();
+        let p1 = Vec3::select(p1.cmpgt(p0), p1, p0 + sp);
+        Some(Aabb::new(p0, p1))
+    }
+}
+
+/// Grid resolution with about `longest` points along the longest side of
+/// `bounds` and the same spacing along every axis (at least 2 per axis).
+pub fn res_for(bounds: Aabb, longest: usize) -> [usize; 3] {
+    let s = bounds.size();
+    let m = s.max_element();
+    [s.x, s.y, s.z].map(|e| (((longest - 1) as f32 * e / m).round() as usize + 1).max(2))
+}
+
+/// softplus⁻¹(y) = ln(eʸ − 1), stable for small and large y.
+pub fn inverse_softplus(y: f32) -> f32 {
+    if y > 20.0 {
+        y
+    } else {
+        y.exp_m1().ln()
+    }
+}
+
+/// Bits set within Chebyshev distance `r` (voxels) of a set bit.
+pub fn dilate_bits(words: &[u64], res: [usize; 3], r: usize) -> Vec<u64> {
+    let mut cur = words.to_vec();
+    let [nx, ny, nz] = res;
+    let n = nx * ny * nz;
+    for _ in 0..r {
+        let src = cur.clone();
+        cur.par_iter_mut().enumerate().for_each(|(w, bits)| {
+            for b in 0..64 {
+                let i = w * 64 + b;
+                if i >= n || *bits >> b & 1 == 1 {
+                    continue;
+                }
+                let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+                let near = |c: usize, m: usize| c.saturating_sub(1)..=(c + 1).min(m - 1);
+                let hit = near(z, nz)
+                    .any(|zz| near(y, ny).any(|yy| near(x, nx).any(|xx| bit(&src, xx + nx * (yy + ny * zz)))));
+                if hit {
+                    *bits |= 1 << b;
+                }
+            }
+        });
+    }
+    cur
+}

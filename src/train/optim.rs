@@ -1,0 +1,174 @@
+//! Sparse Adam over flat parameter arrays, total-variation gradients, and
+//! merging the per-thread gradient buffers.
+//!
+//! Every thread owns a full-size gradient buffer and a bitmap of the grid
+//! points it touched; after a batch the bitmaps are OR-ed and the optimizer
+//! walks only the touched points, in parallel chunks of whole bitmap words,
+//! summing the threads' gradients, zeroing them and updating parameters and
+//! moments. Untouched voxels cost one zero-word test per 64.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Grid points per parallel chunk (a multiple of 64).
+const CHUNK: usize = 64 * 32;
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AdamParams {
+    pub beta1: f32,
+    pub beta2: f32,
+    pub eps: f32,
+}
+
+impl Default for AdamParams {
+    fn default() -> Self {
+        AdamParams {
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-8,
+        }
+    }
+}
+
+/// First and second moments of one parameter array (`stride` values per
+/// grid point).
+#[derive(Clone, Debug, Default)]
+pub struct Moments {
+    pub m: Vec<f32>,
+    pub v: Vec<f32>,
+}
+
+impl Moments {
+    pub fn new(len: usize) -> Self {
+        Moments {
+            m: vec![0.0; len],
+            v: vec![0.0; len],
+        }
+    }
+}
+
+/// OR of the threads' touched bitmaps; clears them.
+pub fn merge_marks(marks: &mut [&mut Vec<u64>]) -> Vec<u64> {
+    let n = marks.first().map_or(0, |m| m.len());
+    let mut out = vec![0u64; n];
+    for m in marks.iter_mut() {
+        out.par_iter_mut().zip(m.par_iter_mut()).for_each(|(o, w)| {
+            *o |= *w;
+            *w = 0;
+        });
+    }
+    out
+}
+
+/// One Adam step on the grid points set in `touched` (and in `active` when
+/// given). `grads` are the threads' full-size gradient arrays; they are
+/// summed and zeroed at every touched point. `lr_t` already includes the
+/// bias correction. Values are clamped to `clamp` afterwards.
+#[allow(clippy::too_many_arguments)]
+pub fn adam_step(
+    params: &mut [f32],
+    mom: &mut Moments,
+    grads: &mut [&mut Vec<f32>],
+    stride: usize,
+    touched: &[u64],
+    active: Option<&[u64]>,
+    lr_t: f32,
+    hp: AdamParams,
+    clamp: (f32, f32),
+) {
+    if params.is_empty() {
+        return;
+    }
+    let span = CHUNK * stride;
+    let nchunks = params.len().div_ceil(span);
+    let mut per_chunk: Vec<Vec<&mut [f32]>> = (0..nchunks).map(|_| Vec::with_capacity(grads.len())).collect();
+    for g in grads.iter_mut() {
+        for (c, sl) in g.chunks_mut(span).enumerate() {
+            per_chunk[c].push(sl);
+        }
+    }
+    let AdamParams { beta1, beta2, eps } = hp;
+    params
+        .par_chunks_mut(span)
+        .zip(mom.m.par_chunks_mut(span))
+        .zip(mom.v.par_chunks_mut(span))
+        .zip(per_chunk.into_par_iter())
+        .enumerate()
+        .for_each(|(c, (((p, m), v), mut gs))| {
+            let w0 = c * CHUNK / 64;
+            let words = &touched[w0..(w0 + CHUNK / 64).min(touched.len())];
+            let mut sum = vec![0.0f32; stride];
+            for (wi, &word) in words.iter().enumerate() {
+                let mut bits = word;
+                while bits != 0 {
+                    let b = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    let local = wi * 64 + b;
+                    let r = local * stride..(local + 1) * stride;
+                    sum.iter_mut().for_each(|s| *s = 0.0);
+                    for g in gs.iter_mut() {
+                        for (s, x) in sum.iter_mut().zip(&mut g[r.clone()]) {
+                            *s += *x;
+                            *x = 0.0;
+                        }
+                    }
+                    if let Some(a) = active {
+                        let gi = c * CHUNK + local;
+                        if a[gi >> 6] >> (gi & 63) & 1 == 0 {
+                            continue;
+                        }
+                    }
+                    for (j, &gj) in sum.iter().enumerate() {
+                        let k = r.start + j;
+                        m[k] = beta1 * m[k] + (1.0 - beta1) * gj;
+                        v[k] = beta2 * v[k] + (1.0 - beta2) * gj * gj;
+                        p[k] = (p[k] - lr_t * m[k] / (v[k].sqrt() + eps)).clamp(clamp.0, clamp.1);
+                    }
+                }
+            }
+        });
+}
+
+/// Bias-corrected learning rate of Adam step `t` (1-based).
+pub fn corrected_lr(lr: f32, t: u64, hp: AdamParams) -> f32 {
+    let t = t.min(1_000_000) as i32;
+    lr * (1.0 - hp.beta2.powi(t)).sqrt() / (1.0 - hp.beta1.powi(t))
+}
+
+/// Adds the gradient of `weight · Σ (xᵥ − xₙ)²` over axis neighbours (the
+/// squared total variation) at the touched grid points to `grad`; `stride`
+/// values per point, each channel on its own.
+pub fn add_tv(params: &[f32], grad: &mut [f32], stride: usize, res: [usize; 3], touched: &[u64], weight: f32) {
+    if weight == 0.0 {
+        return;
+    }
+    let [nx, ny, nz] = res;
+    let span = CHUNK * stride;
+    grad.par_chunks_mut(span).enumerate().for_each(|(c, g)| {
+        let w0 = c * CHUNK / 64;
+        let words = &touched[w0..(w0 + CHUNK / 64).min(touched.len())];
+        for (wi, &word) in words.iter().enumerate() {
+            let mut bits = word;
+            while bits != 0 {
+                let b = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let local = wi * 64 + b;
+                let i = c * CHUNK + local;
+                let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+                let nb = [
+                    (x > 0).then(|| i - 1),
+                    (x + 1 < nx).then(|| i + 1),
+                    (y > 0).then(|| i - nx),
+                    (y + 1 < ny).then(|| i + nx),
+                    (z > 0).then(|| i - nx * ny),
+                    (z + 1 < nz).then(|| i + nx * ny),
+                ];
+                for j in nb.into_iter().flatten() {
+                    for s in 0..stride {
+                        g[local * stride + s] += 2.0 * weight * (params[i * stride + s] - params[j * stride + s]);
+                    }
+                }
+            }
+        }
+    });
+}

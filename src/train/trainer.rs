@@ -1,0 +1,578 @@
+//! The training loop: batches of random rays, forward + backward on every
+//! thread into its own gradient buffer, sparse Adam on the touched voxels,
+//! coarse-to-fine resolution stages, pruning, and an optional feature
+//! distillation phase after the radiance iterations.
+
+use super::march::{backward, forward, GradBuf, MarchOpts, RayOut, Scratch};
+use super::model::{res_for, Model, PRUNED_RAW};
+use super::optim::{adam_step, add_tv, corrected_lr, merge_marks, AdamParams, Moments};
+use super::rays::RaySet;
+use super::teacher::FeatureMaps;
+use crate::camera::Ray;
+use crate::field::{Aabb, GridGeom};
+use crate::util::SplitMix64;
+use crate::{ensure, Result};
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Everything that shapes a training run. Defaults suit a NeRF-synthetic
+/// scene at 200×200 on two cores; `isrf train` adjusts a few per dataset.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TrainConfig {
+    /// Radiance iterations (colour loss only).
+    pub iters: usize,
+    /// Rays per iteration.
+    pub batch: usize,
+    /// Grid points along the longest side of the box at the last stage.
+    pub res: usize,
+    /// Grid points along the longest side at the first stage.
+    pub coarse_res: usize,
+    /// Resolution stages from `coarse_res` to `res` (geometric), the last
+    /// one starting at `last_stage_at` of the iterations.
+    pub stages: usize,
+    pub last_stage_at: f32,
+    /// Spherical-harmonic degree (0–2) after the first stage (which uses 0).
+    pub sh_degree: usize,
+    /// Adam learning rate of the density, in raw units times the voxel size
+    /// (so it means the same at every resolution).
+    pub lr_density: f32,
+    pub lr_sh: f32,
+    pub lr_features: f32,
+    /// Learning rates decay exponentially to this fraction at the end.
+    pub lr_final: f32,
+    /// Initial per-sample opacity (empty but trainable).
+    pub init_alpha: f32,
+    /// After the first stage, samples with weight below this are not shaded.
+    pub weight_floor: f32,
+    /// Voxels whose per-sample opacity stays below this are pruned (with a
+    /// margin of `prune_dilate` voxels) at every stage change and every
+    /// `prune_every` iterations.
+    pub prune_alpha: f32,
+    pub prune_dilate: usize,
+    pub prune_every: usize,
+    /// Shrink the box to the occupied region when the second stage starts.
+    pub shrink_bounds: bool,
+    /// Squared total-variation weights (per touched voxel and iteration) on
+    /// voxel-scaled density, SH coefficients and features.
+    pub tv_density: f32,
+    pub tv_sh: f32,
+    pub tv_features: f32,
+    pub background: [f32; 3],
+    /// Initial box; `None`: [`super::rays::default_bounds`] of the dataset.
+    pub bounds: Option<[[f32; 3]; 2]>,
+    pub seed: u64,
+    /// Feature distillation iterations after the radiance ones (0 = none).
+    pub feature_iters: usize,
+    /// Longest side of the feature grid.
+    pub feature_res: usize,
+    /// λ of L = L_rgb + λ·L_feat.
+    pub feature_lambda: f32,
+    /// Keep density and colour fixed while distilling features.
+    pub freeze_geometry: bool,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            iters: 4000,
+            batch: 4096,
+            res: 160,
+            coarse_res: 64,
+            stages: 4,
+            last_stage_at: 0.5,
+            sh_degree: 2,
+            lr_density: 0.1,
+            lr_sh: 0.05,
+            lr_features: 0.1,
+            lr_final: 0.1,
+            init_alpha: 1e-4,
+            weight_floor: 1e-4,
+            prune_alpha: 1e-3,
+            prune_dilate: 2,
+            prune_every: 1000,
+            shrink_bounds: true,
+            tv_density: 0.0,
+            tv_sh: 0.0,
+            tv_features: 0.0,
+            background: [1.0; 3],
+            bounds: None,
+            seed: 0,
+            feature_iters: 0,
+            feature_res: 64,
+            feature_lambda: 1e-3,
+            freeze_geometry: false,
+        }
+    }
+}
+
+impl TrainConfig {
+    pub fn validate(&self) -> Result<()> {
+        ensure!(self.batch >= 1 && self.batch <= 1 << 22, "batch must be 1..4M rays");
+        ensure!(
+            self.res >= 4 && self.res <= 1024,
+            "res must be 4..1024, got {}",
+            self.res
+        );
+        ensure!(
+            self.coarse_res >= 4 && self.coarse_res <= self.res,
+            "coarse res must be 4..=res, got {}",
+            self.coarse_res
+        );
+        ensure!(self.stages >= 1 && self.stages <= 16, "stages must be 1..16");
+        ensure!(
+            (0.0..1.0).contains(&self.last_stage_at),
+            "last_stage_at must be in [0, 1)"
+        );
+        ensure!(self.sh_degree <= 2, "SH degree must be 0, 1 or 2");
+        ensure!((1e-6..0.5).contains(&self.init_alpha), "init_alpha must be in (0, 0.5)");
+        ensure!(
+            self.feature_res >= 4 && self.feature_res <= 512,
+            "feature res must be 4..512"
+        );
+        let finite = [
+            self.lr_density,
+            self.lr_sh,
+            self.lr_features,
+            self.lr_final,
+            self.weight_floor,
+            self.prune_alpha,
+            self.tv_density,
+            self.tv_sh,
+            self.tv_features,
+            self.feature_lambda,
+        ];
+        ensure!(
+            finite.iter().all(|x| x.is_finite() && *x >= 0.0),
+            "learning rates, floors and weights must be finite and ≥ 0"
+        );
+        ensure!(
+            self.background.iter().all(|c| c.is_finite()),
+            "background must be finite"
+        );
+        Ok(())
+    }
+    pub fn total_iters(&self) -> usize {
+        self.iters + self.feature_iters
+    }
+    /// (first iteration, longest-side resolution) of every stage.
+    pub fn schedule(&self) -> Vec<(usize, usize)> {
+        let s = self.stages;
+        (0..s)
+            .map(|k| {
+                if s == 1 {
+                    return (0, self.res);
+                }
+                let f = k as f32 / (s - 1) as f32;
+                let res = (self.coarse_res as f32 * (self.res as f32 / self.coarse_res as f32).powf(f)).round();
+                let start = (self.iters as f32 * self.last_stage_at * f).round() as usize;
+                (start, res as usize)
+            })
+            .collect()
+    }
+}
+
+/// Figures of one iteration.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize)]
+pub struct StepStats {
+    pub iter: usize,
+    /// Mean squared colour error of the batch.
+    pub loss: f32,
+    pub psnr: f32,
+    /// Mean squared feature error (distillation phase), else 0.
+    pub feature_loss: f32,
+    pub rays: usize,
+    pub samples: u64,
+    pub seconds: f32,
+}
+
+/// Optimizer state.
+#[derive(Clone, Debug, Default)]
+pub struct OptState {
+    pub density: Moments,
+    pub sh: Moments,
+    pub features: Moments,
+    /// Adam steps since the moments were last reset (bias correction).
+    pub t: u64,
+}
+
+pub struct Trainer {
+    pub config: TrainConfig,
+    pub model: Model,
+    pub opt: OptState,
+    /// Completed iterations.
+    pub iter: usize,
+    pub history: Vec<StepStats>,
+    pub rays: RaySet,
+    /// Teacher features of the training views (distillation).
+    pub teacher: Option<FeatureMaps>,
+    grads: Vec<GradBuf>,
+    useful: Vec<u32>,
+}
+
+impl Trainer {
+    /// A trainer over `rays` starting from an empty model on `bounds`.
+    pub fn new(config: TrainConfig, rays: RaySet, bounds: Aabb) -> Result<Trainer> {
+        config.validate()?;
+        ensure!(!rays.is_empty(), "no training rays");
+        ensure!(bounds.is_valid(), "training box {bounds:?} is not a valid box");
+        let res0 = config.schedule()[0].1;
+        let geom = GridGeom::new(bounds, res_for(bounds, res0));
+        let step = step_of(&geom);
+        let init_sigma = -(1.0 - config.init_alpha).ln() / step;
+        let model = Model::new(geom, 0, 0.0, init_sigma)?;
+        Ok(Self::from_parts(config, model, OptState::default(), 0, vec![], rays))
+    }
+
+    /// Reassembles a trainer (checkpoint resume).
+    pub fn from_parts(
+        config: TrainConfig,
+        model: Model,
+        opt: OptState,
+        iter: usize,
+        history: Vec<StepStats>,
+        rays: RaySet,
+    ) -> Trainer {
+        let mut t = Trainer {
+            config,
+            model,
+            opt,
+            iter,
+            history,
+            rays,
+            teacher: None,
+            grads: vec![],
+            useful: vec![],
+        };
+        t.reset_buffers(false);
+        t
+    }
+
+    /// Reallocates gradient buffers (and moments unless `keep_moments`) for
+    /// the current model; recomputes which rays meet the box.
+    fn reset_buffers(&mut self, keep_moments: bool) {
+        let nt = rayon::current_num_threads().max(1);
+        self.grads = (0..nt).map(|_| GradBuf::new(&self.model)).collect();
+        let fits = self.opt.density.m.len() == self.model.len()
+            && self.opt.sh.m.len() == self.model.sh.len()
+            && self.opt.features.m.len() == self.model.features.as_ref().map_or(0, |f| f.data.len());
+        if !keep_moments || !fits {
+            self.opt = OptState {
+                density: Moments::new(self.model.len()),
+                sh: Moments::new(self.model.sh.len()),
+                features: Moments::new(self.model.features.as_ref().map_or(0, |f| f.data.len())),
+                t: 0,
+            };
+        }
+        self.useful = self.rays.hitting(&self.model.geom.bounds);
+    }
+
+    pub fn is_done(&self) -> bool {
+        self.iter >= self.config.total_iters()
+    }
+    pub fn in_feature_phase(&self) -> bool {
+        self.iter >= self.config.iters
+    }
+    /// Sample spacing at the current resolution (the renderer's default:
+    /// half the smallest voxel side).
+    pub fn step_size(&self) -> f32 {
+        step_of(&self.model.geom)
+    }
+
+    fn march_opts(&self, features: bool) -> MarchOpts {
+        let sched = self.config.schedule();
+        let first_stage = sched.len() > 1 && self.iter < sched[1].0;
+        MarchOpts {
+            step: self.step_size(),
+            background: Vec3::from(self.config.background),
+            weight_floor: if first_stage { 0.0 } else { self.config.weight_floor },
+            min_transmittance: 1e-4,
+            features,
+        }
+    }
+
+    /// Stage changes due at the current iteration: pruning, box shrinking,
+    /// resampling, SH degree, the feature grid.
+    fn apply_schedule(&mut self) -> Result<()> {
+        let sched = self.config.schedule();
+        for (k, &(start, res)) in sched.iter().enumerate().skip(1) {
+            if self.iter != start || start == 0 {
+                continue;
+            }
+            let step = self.step_size();
+            self.model
+                .prune(step, self.config.prune_alpha, self.config.prune_dilate);
+            let mut bounds = self.model.geom.bounds;
+            if k == 1 && self.config.shrink_bounds {
+                if let Some(b) = self.model.occupied_bounds(step, self.config.prune_alpha, 2) {
+                    bounds = b;
+                }
+            }
+            let geom = GridGeom::new(bounds, res_for(bounds, res));
+            self.model = self.model.resampled(geom)?.with_degree(self.config.sh_degree);
+            self.reset_buffers(false);
+        }
+        let pe = self.config.prune_every;
+        if pe > 0 && self.iter > 0 && self.iter.is_multiple_of(pe) && self.iter < self.config.iters {
+            let first = sched.get(1).map_or(usize::MAX, |s| s.0);
+            if self.iter > first {
+                self.model
+                    .prune(self.step_size(), self.config.prune_alpha, self.config.prune_dilate);
+            }
+        }
+        if self.iter == self.config.iters && self.config.feature_iters > 0 && self.model.features.is_none() {
+            let ch = self
+                .teacher
+                .as_ref()
+                .map(|t| t.channels)
+                .ok_or_else(|| crate::Error::invalid("feature distillation needs teacher features"))?;
+            let res = res_for(self.model.geom.bounds, self.config.feature_res);
+            self.model.add_features(res, ch)?;
+            self.reset_buffers(true);
+            self.opt.features = Moments::new(self.model.features.as_ref().map_or(0, |f| f.data.len()));
+        }
+        Ok(())
+    }
+
+    /// Learning-rate multiplier at the current iteration (exponential decay
+    /// over the radiance phase; the feature phase restarts it for features).
+    fn decay(&self, phase_start: usize, phase_len: usize) -> f32 {
+        let f = (self.iter.saturating_sub(phase_start)) as f32 / phase_len.max(1) as f32;
+        self.config.lr_final.powf(f.min(1.0))
+    }
+
+    /// One iteration.
+    pub fn step(&mut self) -> Result<StepStats> {
+        ensure!(!self.is_done(), "training is already complete");
+        let t0 = Instant::now();
+        self.apply_schedule()?;
+        let features = self.in_feature_phase() && self.model.features.is_some();
+        let opts = self.march_opts(features);
+        let batch = self.sample_batch();
+        let nb = batch.len().max(1) as f32;
+        let nt = self.grads.len();
+        let chunk = batch.len().div_ceil(nt).max(1);
+        let (model, rays, teacher) = (&self.model, &self.rays, self.teacher.as_ref());
+        let lambda = self.config.feature_lambda;
+        let results: Vec<(f64, f64, u64)> = self
+            .grads
+            .par_iter_mut()
+            .zip(batch.par_chunks(chunk))
+            .map(|(gb, idx)| {
+                let mut s = Scratch::default();
+                let fc = if features { teacher.map_or(0, |t| t.channels) } else { 0 };
+                let mut target = vec![0.0f32; fc];
+                let mut h = vec![0.0f32; fc];
+                let (mut se, mut fe, mut ns) = (0.0f64, 0.0f64, 0u64);
+                for &ri in idx {
+                    let ri = ri as usize;
+                    let ray = &rays.rays[ri];
+                    let out = forward(model, ray, &opts, &mut s);
+                    ns += out.samples as u64;
+                    let d = out.color - rays.colors[ri];
+                    se += d.length_squared() as f64;
+                    let g = d * (2.0 / (3.0 * nb));
+                    if let (true, Some(t)) = (fc > 0, teacher) {
+                        t.sample(rays.view[ri] as usize, rays.pixel[ri], &mut target);
+                        for c in 0..fc {
+                            let e = s.features[c] - target[c];
+                            fe += (e * e) as f64;
+                            h[c] = lambda * 2.0 * e / (fc as f32 * nb);
+                        }
+                    }
+                    backward(model, ray, &opts, &mut s, g, &h, gb);
+                }
+                (se, fe, ns)
+            })
+            .collect();
+        self.optimize(features)?;
+        self.iter += 1;
+        let se: f64 = results.iter().map(|r| r.0).sum();
+        let fe: f64 = results.iter().map(|r| r.1).sum();
+        let loss = (se / (3.0 * nb as f64)) as f32;
+        let fc = self.model.features.as_ref().map_or(1, |f| f.channels) as f64;
+        let stats = StepStats {
+            iter: self.iter,
+            loss,
+            psnr: psnr_of(loss),
+            feature_loss: (fe / (fc * nb as f64)) as f32,
+            rays: batch.len(),
+            samples: results.iter().map(|r| r.2).sum(),
+            seconds: t0.elapsed().as_secs_f32(),
+        };
+        self.history.push(stats);
+        Ok(stats)
+    }
+
+    /// Random ray indices (deterministic per seed and iteration), sorted so
+    /// that neighbouring rays of a view run one after another (cache).
+    fn sample_batch(&self) -> Vec<u32> {
+        let n = self.useful.len();
+        if n == 0 {
+            return vec![];
+        }
+        // One generator per iteration (resumable), seeded through a mixing
+        // step: consecutive raw seeds would give overlapping sequences.
+        let mixed = SplitMix64::new(self.config.seed.wrapping_mul(0x1000_0000_01B3) ^ self.iter as u64).next_u64();
+        let mut rng = SplitMix64::new(mixed);
+        let mut b: Vec<u32> = (0..self.config.batch).map(|_| self.useful[rng.below(n)]).collect();
+        b.sort_unstable();
+        b
+    }
+
+    /// TV regularisers and the sparse Adam step on everything touched.
+    fn optimize(&mut self, features: bool) -> Result<()> {
+        let cfg = &self.config;
+        self.opt.t += 1;
+        let hp = AdamParams::default();
+        let in_feat = self.iter >= cfg.iters;
+        let decay = if in_feat {
+            cfg.lr_final
+        } else {
+            self.decay(0, cfg.iters)
+        };
+        let frozen = in_feat && cfg.freeze_geometry;
+        let voxel = self.model.geom.spacing().min_element();
+        let mut marks: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.marks).collect();
+        let touched = merge_marks(&mut marks);
+        let res = self.model.geom.res;
+        if !frozen {
+            // TV on voxel-scaled density: the weight means the same at every
+            // resolution; the gradient w.r.t. raw carries voxel².
+            add_tv(
+                &self.model.density,
+                &mut self.grads[0].density,
+                1,
+                res,
+                &touched,
+                cfg.tv_density * voxel * voxel,
+            );
+            add_tv(
+                &self.model.sh,
+                &mut self.grads[0].sh,
+                self.model.sh_stride(),
+                res,
+                &touched,
+                cfg.tv_sh,
+            );
+        }
+        let t = self.opt.t;
+        let lr_d = if frozen {
+            0.0
+        } else {
+            corrected_lr(cfg.lr_density / voxel * decay, t, hp)
+        };
+        let lr_s = if frozen {
+            0.0
+        } else {
+            corrected_lr(cfg.lr_sh * decay, t, hp)
+        };
+        let active = self.model.active.clone();
+        {
+            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.density).collect();
+            adam_step(
+                &mut self.model.density,
+                &mut self.opt.density,
+                &mut gs,
+                1,
+                &touched,
+                Some(&active),
+                lr_d,
+                hp,
+                (PRUNED_RAW, 1e6),
+            );
+        }
+        {
+            let stride = self.model.sh_stride();
+            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.sh).collect();
+            adam_step(
+                &mut self.model.sh,
+                &mut self.opt.sh,
+                &mut gs,
+                stride,
+                &touched,
+                Some(&active),
+                lr_s,
+                hp,
+                (-1e3, 1e3),
+            );
+        }
+        if features {
+            let mut fm: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.feat_marks).collect();
+            let ftouched = merge_marks(&mut fm);
+            let fdecay = self.decay(cfg.iters, cfg.feature_iters);
+            let f = self.model.features.as_mut().expect("feature phase has a feature grid");
+            add_tv(
+                &f.data,
+                &mut self.grads[0].feat,
+                f.channels,
+                f.geom.res,
+                &ftouched,
+                cfg.tv_features,
+            );
+            let lr_f = corrected_lr(cfg.lr_features * fdecay, t, hp);
+            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.feat).collect();
+            adam_step(
+                &mut f.data,
+                &mut self.opt.features,
+                &mut gs,
+                f.channels,
+                &ftouched,
+                None,
+                lr_f,
+                hp,
+                (-1e4, 1e4),
+            );
+        }
+        Ok(())
+    }
+
+    /// Renders rays with the training forward pass (every sample shaded:
+    /// the renderer's function), in parallel; features when the model has
+    /// them and `features` is set (`n × channels`).
+    pub fn render_rays(&self, rays: &[Ray], features: bool) -> (Vec<RayOut>, Vec<f32>) {
+        let mut opts = self.march_opts(features && self.model.features.is_some());
+        opts.weight_floor = 0.0;
+        let fc = if opts.features {
+            self.model.features.as_ref().map_or(0, |f| f.channels)
+        } else {
+            0
+        };
+        let parts: Vec<(Vec<RayOut>, Vec<f32>)> = rays
+            .par_chunks(256)
+            .map(|chunk| {
+                let mut s = Scratch::default();
+                let mut outs = Vec::with_capacity(chunk.len());
+                let mut feats = Vec::with_capacity(chunk.len() * fc);
+                for r in chunk {
+                    outs.push(forward(&self.model, r, &opts, &mut s));
+                    feats.extend_from_slice(&s.features[..fc]);
+                }
+                (outs, feats)
+            })
+            .collect();
+        let mut outs = Vec::with_capacity(rays.len());
+        let mut feats = Vec::with_capacity(rays.len() * fc);
+        for (o, f) in parts {
+            outs.extend(o);
+            feats.extend(f);
+        }
+        (outs, feats)
+    }
+}
+
+/// The renderer's default sample spacing for a grid: half the smallest
+/// voxel side.
+pub fn step_of(geom: &GridGeom) -> f32 {
+    0.5 * geom.spacing().min_element()
+}
+
+pub fn psnr_of(mse: f32) -> f32 {
+    if mse <= 0.0 {
+        f32::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    }
+}
