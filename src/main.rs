@@ -33,6 +33,8 @@ enum Command {
     Run(cli::run::Args),
     /// Measured figures printed as tables (render: rays/s; segment: stroke-to-mask stages).
     Bench(cli::bench::Args),
+    /// The interactive editor (bevy; needs the `editor` cargo feature).
+    Edit(cli::edit::Args),
 }
 
 fn main() {
@@ -45,6 +47,7 @@ fn main() {
         Command::Eval(a) => cli::eval::run(a),
         Command::Run(a) => cli::run::run(a),
         Command::Bench(a) => cli::bench::run(a),
+        Command::Edit(a) => cli::edit::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -18,12 +18,15 @@ pub enum What {
     Render(RenderArgs),
     /// Per-stage times of stroke -> mask, against the dense reference implementation.
     Segment(SegmentArgs),
+    /// Frames per second of the editor's GPU view (needs the `editor` feature).
+    Editor(super::edit::BenchArgs),
 }
 
 pub fn run(a: Args) -> Result<()> {
     match a.what {
         What::Render(a) => run_render(a),
         What::Segment(a) => run_segment(a),
+        What::Editor(a) => super::edit::bench(a),
     }
 }
 

@@ -1,0 +1,456 @@
+// isrf GPU ray marcher: the same function as the CPU reference renderer
+// (src/render/mod.rs), evaluated per pixel in a fullscreen fragment pass.
+//
+// Samples sit at fixed world distances t_i = (i + 1/2) * step along the unit
+// ray from the camera; at each sample the layers' (masked, activated)
+// densities add and colours mix by density (D²NeRF), alpha = 1 - exp(-σ δ),
+// T_i = Π (1 - alpha_j), C = Σ T_i alpha_i c_i + T_N · background. Grids are
+// corner-aligned (src/field/geom.rs), x fastest; trilinear interpolation is
+// done here in f32 from storage buffers. Sparse colours renormalise over the
+// stored corners, as `ChannelGrid::sample` does.
+//
+// Empty space: each field has a grid of skip cells (2 voxels wide) holding
+// the Chebyshev distance to the nearest cell whose grid points have
+// σ > 1e-4; a ray leaves the whole empty cube at once. Samples are skipped
+// only where every layer is empty; what they would add is below the CPU's
+// own skipping threshold. Each layer's empty / occupied state is cached until
+// the ray leaves the cell or cube it was computed for.
+//
+// Data layout: see src/app/gpu/pack.rs.
+
+struct View {
+    c2w: mat4x4<f32>,
+    clip_from_world: mat4x4<f32>,
+    // fx, fy, cx, cy
+    intrinsics: vec4<f32>,
+    background: vec4<f32>,
+    // step, min transmittance, viewport offset x, y
+    march: vec4<f32>,
+    // layer count
+    counts: vec4<u32>,
+};
+
+struct Layer {
+    to_local: mat4x4<f32>,
+    // field index, mask kind, mask word offset, flags
+    info: vec4<u32>,
+    tint_hue: vec4<f32>,
+    sat_bright: vec4<f32>,
+    box_min: vec4<f32>,
+    box_max: vec4<f32>,
+};
+
+struct FieldInfo {
+    // xyz bounds; w: activation shift
+    bounds_min: vec4<f32>,
+    // xyz bounds; w: activation kind (0 relu, 1 softplus)
+    bounds_max: vec4<f32>,
+    // nx, ny, nz, sparse colours
+    res: vec4<u32>,
+    // density, colours, rank bits, rank prefix
+    offsets: vec4<u32>,
+    // skip dims xyz, skip offset
+    skip: vec4<u32>,
+    skip_cell: vec4<f32>,
+};
+
+@group(0) @binding(0) var<uniform> view: View;
+@group(0) @binding(1) var<storage, read> layers: array<Layer>;
+@group(0) @binding(2) var<storage, read> fields: array<FieldInfo>;
+@group(0) @binding(3) var<storage, read> aux: array<u32>;
+@group(0) @binding(4) var<storage, read> bitmaps: array<u32>;
+@group(0) @binding(5) var<storage, read> density: array<f32>;
+@group(0) @binding(6) var<storage, read> colors: array<vec2<u32>>;
+
+const MAX_LAYERS: u32 = 16u;
+const MAX_ITERATIONS: u32 = 1000000u;
+const INF: f32 = 3.0e38;
+
+const MASK_KEEP: u32 = 1u;
+const MASK_REMOVE: u32 = 2u;
+const LAYER_COLOR_EDIT: u32 = 1u;
+const LAYER_HIGHLIGHT: u32 = 2u;
+const LAYER_DIM: u32 = 4u;
+
+// Per-ray state of each layer.
+var<private> lo_origin: array<vec3<f32>, MAX_LAYERS>;
+var<private> lo_dir: array<vec3<f32>, MAX_LAYERS>;
+// Until which ray distance the cached empty / occupied state holds.
+var<private> valid_until: array<f32, MAX_LAYERS>;
+var<private> occupied: array<u32, MAX_LAYERS>;
+var<private> sigma: array<f32, MAX_LAYERS>;
+
+// Trilinear cell of a local point: flat index of the base corner,
+// fractions; `inside` false outside the grid (geom.rs `corners`).
+struct Cell {
+    base: u32,
+    frac: vec3<f32>,
+    inside: bool,
+};
+
+fn cell_of(f: FieldInfo, p: vec3<f32>) -> Cell {
+    var out: Cell;
+    let n = vec3<f32>(f.res.xyz) - vec3<f32>(1.0);
+    let g = (p - f.bounds_min.xyz) / (f.bounds_max.xyz - f.bounds_min.xyz) * n;
+    out.inside = all(g >= vec3<f32>(0.0)) && all(g <= n);
+    // Base corner clamped so that points on the upper face use the last cell.
+    let b = min(vec3<u32>(max(g, vec3<f32>(0.0))), f.res.xyz - vec3<u32>(2u));
+    out.base = b.x + f.res.x * (b.y + f.res.y * b.z);
+    out.frac = g - vec3<f32>(b);
+    return out;
+}
+
+// Flat offsets of the 8 corners from the base corner, in the CPU's order.
+fn corner(f: FieldInfo, k: u32) -> u32 {
+    return (k & 1u) + f.res.x * (((k >> 1u) & 1u) + f.res.y * ((k >> 2u) & 1u));
+}
+
+fn corner_weight(frac: vec3<f32>, k: u32) -> f32 {
+    let d = vec3<f32>(f32(k & 1u), f32((k >> 1u) & 1u), f32((k >> 2u) & 1u));
+    let w = mix(vec3<f32>(1.0) - frac, frac, d);
+    return w.x * w.y * w.z;
+}
+
+fn activate(f: FieldInfo, raw: f32) -> f32 {
+    if f.bounds_max.w > 0.5 {
+        let x = raw + f.bounds_min.w;
+        if x > 20.0 {
+            return x;
+        }
+        return log(1.0 + exp(x));
+    }
+    return max(raw, 0.0);
+}
+
+fn raw_density(f: FieldInfo, c: Cell) -> f32 {
+    let o = f.offsets.x + c.base;
+    let sx = 1u;
+    let sy = f.res.x;
+    let sz = f.res.x * f.res.y;
+    let fr = c.frac;
+    // Trilinear, corners in the CPU's order.
+    let c00 = mix(density[o], density[o + sx], fr.x);
+    let c10 = mix(density[o + sy], density[o + sy + sx], fr.x);
+    let c01 = mix(density[o + sz], density[o + sz + sx], fr.x);
+    let c11 = mix(density[o + sz + sy], density[o + sz + sy + sx], fr.x);
+    return mix(mix(c00, c10, fr.y), mix(c01, c11, fr.y), fr.z);
+}
+
+// Slot of grid point v in the colour array, or -1 when not stored.
+fn color_slot(f: FieldInfo, v: u32) -> i32 {
+    if f.res.w == 0u {
+        return i32(v);
+    }
+    let w = v >> 6u;
+    let lo = aux[f.offsets.z + 2u * w];
+    let hi = aux[f.offsets.z + 2u * w + 1u];
+    let b = v & 63u;
+    var set: u32;
+    var below: u32;
+    if b < 32u {
+        set = (lo >> b) & 1u;
+        below = countOneBits(lo & ((1u << b) - 1u));
+    } else {
+        set = (hi >> (b - 32u)) & 1u;
+        below = countOneBits(lo) + countOneBits(hi & ((1u << (b - 32u)) - 1u));
+    }
+    if set == 0u {
+        return -1;
+    }
+    return i32(aux[f.offsets.w + w] + below);
+}
+
+// Colour in [0, 1] at a cell (ChannelGrid::sample then clamp).
+fn color_at(f: FieldInfo, c: Cell) -> vec3<f32> {
+    var acc = vec3<f32>(0.0);
+    var wsum = 0.0;
+    for (var k = 0u; k < 8u; k++) {
+        let w = corner_weight(c.frac, k);
+        if w == 0.0 {
+            continue;
+        }
+        let s = color_slot(f, c.base + corner(f, k));
+        if s < 0 {
+            continue;
+        }
+        let q = colors[f.offsets.y + u32(s)];
+        let rg = unpack2x16float(q.x);
+        let ba = unpack2x16float(q.y);
+        acc += w * vec3<f32>(rg.x, rg.y, ba.x);
+        wsum += w;
+    }
+    if wsum <= 1e-6 {
+        return vec3<f32>(0.0);
+    }
+    if f.res.w != 0u {
+        acc = acc / wsum;
+    }
+    return clamp(acc, vec3<f32>(0.0), vec3<f32>(1.0));
+}
+
+fn bit(offset: u32, idx: u32) -> f32 {
+    let w = bitmaps[offset + (idx >> 5u)];
+    return f32((w >> (idx & 31u)) & 1u);
+}
+
+// Trilinearly interpolated mask value b(p) (keep) or 1 - b(p) (remove).
+fn mask_factor(info: vec4<u32>, f: FieldInfo, c: Cell) -> f32 {
+    let kind = info.y;
+    if kind != MASK_KEEP && kind != MASK_REMOVE {
+        return 1.0;
+    }
+    var b = 0.0;
+    for (var k = 0u; k < 8u; k++) {
+        b += corner_weight(c.frac, k) * bit(info.z, c.base + corner(f, k));
+    }
+    if kind == MASK_KEEP {
+        return b;
+    }
+    return 1.0 - b;
+}
+
+fn safe_recip(d: vec3<f32>) -> vec3<f32> {
+    let s = select(vec3<f32>(1.0), sign(d), d != vec3<f32>(0.0));
+    return s / max(abs(d), vec3<f32>(1e-30));
+}
+
+// Slab test (geom.rs `Aabb::intersect`): (t0, t1) with t0 clamped to >= 0;
+// empty when t1 <= t0.
+fn intersect(bmin: vec3<f32>, bmax: vec3<f32>, o: vec3<f32>, d: vec3<f32>) -> vec2<f32> {
+    let inv = safe_recip(d);
+    let a = (bmin - o) * inv;
+    let b = (bmax - o) * inv;
+    let lo = min(a, b);
+    let hi = max(a, b);
+    let t0 = max(max(max(lo.x, lo.y), lo.z), 0.0);
+    let t1 = min(min(hi.x, hi.y), hi.z);
+    return vec2<f32>(t0, t1);
+}
+
+// Distance from p along d to the exit of box [lo, hi] (p inside).
+fn exit_distance(lo: vec3<f32>, hi: vec3<f32>, p: vec3<f32>, d: vec3<f32>) -> f32 {
+    let inv = safe_recip(d);
+    let e = max((lo - p) * inv, (hi - p) * inv);
+    return max(min(min(e.x, e.y), e.z), 0.0);
+}
+
+fn skip_radius(f: FieldInfo, c: vec3<u32>) -> u32 {
+    let i = c.x + f.skip.x * (c.y + f.skip.y * c.z);
+    let word = aux[f.skip.w + (i >> 2u)];
+    return (word >> (8u * (i & 3u))) & 255u;
+}
+
+// Recomputes layer k's state at ray distance t: occupied (sample here)
+// until it leaves the current skip cell, or empty until it leaves the empty
+// cube around it (or enters its box).
+fn update_state(k: u32, t: f32) {
+    let l_box_min = layers[k].box_min.xyz;
+    let l_box_max = layers[k].box_max.xyz;
+    let f = fields[layers[k].info.x];
+    let d = lo_dir[k];
+    let p = lo_origin[k] + t * d;
+    if !(all(p >= l_box_min) && all(p <= l_box_max)) {
+        occupied[k] = 0u;
+        let hit = intersect(l_box_min, l_box_max, p, d);
+        if hit.y > hit.x && hit.x > 0.0 {
+            valid_until[k] = t + hit.x;
+        } else if hit.y > hit.x {
+            // On the box boundary: re-check at the next sample.
+            valid_until[k] = t;
+        } else {
+            valid_until[k] = INF;
+        }
+        return;
+    }
+    let cell = f.skip_cell.xyz;
+    let rel = (p - f.bounds_min.xyz) / cell;
+    let dims = f.skip.xyz;
+    let c = min(vec3<u32>(max(rel, vec3<f32>(0.0))), dims - vec3<u32>(1u));
+    let r = skip_radius(f, c);
+    let lo = f.bounds_min.xyz + vec3<f32>(c) * cell;
+    let hi = lo + cell;
+    if r == 0u {
+        occupied[k] = 1u;
+        valid_until[k] = t + exit_distance(lo, hi, p, d);
+        return;
+    }
+    occupied[k] = 0u;
+    let grow = f32(r - 1u) * cell;
+    valid_until[k] = t + exit_distance(lo - grow, hi + grow, p, d);
+}
+
+fn apply_edit(k: u32, c_in: vec3<f32>) -> vec3<f32> {
+    let tint_hue = layers[k].tint_hue;
+    let sat_bright = layers[k].sat_bright;
+    var c = c_in;
+    let hue = tint_hue.w;
+    if hue != 0.0 {
+        let kk = vec3<f32>(1.0 / sqrt(3.0));
+        let a = radians(hue);
+        let s = sin(a);
+        let co = cos(a);
+        c = c * co + cross(kk, c) * s + kk * dot(kk, c) * (1.0 - co);
+    }
+    let luma = dot(c, vec3<f32>(0.2126, 0.7152, 0.0722));
+    c = vec3<f32>(luma) + (c - vec3<f32>(luma)) * sat_bright.x;
+    c = c * sat_bright.y * tint_hue.xyz;
+    return clamp(c, vec3<f32>(0.0), vec3<f32>(1.0));
+}
+
+fn overlay(flags: u32, c: vec3<f32>) -> vec3<f32> {
+    if (flags & LAYER_HIGHLIGHT) != 0u {
+        return mix(c, vec3<f32>(1.0, 0.55, 0.1), 0.35);
+    }
+    if (flags & LAYER_DIM) != 0u {
+        let luma = dot(c, vec3<f32>(0.2126, 0.7152, 0.0722));
+        return mix(c, vec3<f32>(luma), 0.7) * 0.6;
+    }
+    return c;
+}
+
+// Sum of the layers' masked densities at t; fills `sigma`. Layers in empty
+// space contribute nothing.
+fn densities(n: u32, t: f32) -> f32 {
+    var sum = 0.0;
+    for (var k = 0u; k < n; k++) {
+        var s = 0.0;
+        if occupied[k] != 0u {
+            let info = layers[k].info;
+            let f = fields[info.x];
+            let c = cell_of(f, lo_origin[k] + t * lo_dir[k]);
+            if c.inside {
+                s = activate(f, raw_density(f, c));
+                if s > 0.0 {
+                    s *= mask_factor(info, f, c);
+                }
+            }
+        }
+        sigma[k] = s;
+        sum += s;
+    }
+    return sum;
+}
+
+// Density-weighted colour at t.
+fn shade(n: u32, t: f32, sum: f32) -> vec3<f32> {
+    var col = vec3<f32>(0.0);
+    for (var k = 0u; k < n; k++) {
+        let s = sigma[k];
+        if s <= 0.0 {
+            continue;
+        }
+        let info = layers[k].info;
+        let f = fields[info.x];
+        let c = cell_of(f, lo_origin[k] + t * lo_dir[k]);
+        var ck = color_at(f, c);
+        if (info.w & LAYER_COLOR_EDIT) != 0u {
+            ck = apply_edit(k, ck);
+        }
+        ck = overlay(info.w, ck);
+        col += (s / sum) * ck;
+    }
+    return col;
+}
+
+fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {
+    let lo = c / 12.92;
+    let hi = pow((c + vec3<f32>(0.055)) / 1.055, vec3<f32>(2.4));
+    return select(hi, lo, c <= vec3<f32>(0.04045));
+}
+
+struct FragmentOutput {
+    @location(0) color: vec4<f32>,
+    @builtin(frag_depth) depth: f32,
+};
+
+@fragment
+fn fragment(@builtin(position) pos: vec4<f32>) -> FragmentOutput {
+    // Pixel centre in the view's pixel coordinates (v grows downwards).
+    let uv = pos.xy - view.march.zw;
+    let kk = view.intrinsics;
+    let d_cam = vec3<f32>((uv.x - kk.z) / kk.x, -(uv.y - kk.w) / kk.y, -1.0);
+    let c2w = view.c2w;
+    let dir = normalize(mat3x3<f32>(c2w[0].xyz, c2w[1].xyz, c2w[2].xyz) * d_cam);
+    let origin = c2w[3].xyz;
+    let n = min(view.counts.x, MAX_LAYERS);
+    let dt = view.march.x;
+    let min_t = view.march.y;
+
+    // Rays in each layer's frame, and the union of the layers' intervals.
+    var t0 = INF;
+    var t1 = -INF;
+    for (var k = 0u; k < n; k++) {
+        let m = layers[k].to_local;
+        let o = (m * vec4<f32>(origin, 1.0)).xyz;
+        let d = (m * vec4<f32>(dir, 0.0)).xyz;
+        lo_origin[k] = o;
+        lo_dir[k] = d;
+        valid_until[k] = -1.0;
+        occupied[k] = 0u;
+        let hit = intersect(layers[k].box_min.xyz, layers[k].box_max.xyz, o, d);
+        if hit.y > hit.x {
+            t0 = min(t0, hit.x);
+            t1 = max(t1, hit.y);
+        }
+    }
+
+    var trans = 1.0;
+    var color = vec3<f32>(0.0);
+    var t_half = -1.0;
+    if t1 > t0 {
+        var i = max(ceil(t0 / dt - 0.5), 0.0);
+        for (var it = 0u; it < MAX_ITERATIONS; it++) {
+            let t = (i + 0.5) * dt;
+            if t > t1 || trans < min_t {
+                break;
+            }
+            // Which layers may have density here; where none does, jump to
+            // the first sample some layer might.
+            var any = false;
+            var next = INF;
+            for (var k = 0u; k < n; k++) {
+                if t >= valid_until[k] {
+                    update_state(k, t);
+                }
+                if occupied[k] != 0u {
+                    any = true;
+                } else {
+                    next = min(next, valid_until[k]);
+                }
+            }
+            if !any {
+                if next >= INF {
+                    break;
+                }
+                i = max(ceil(next / dt - 0.5), i + 1.0);
+                continue;
+            }
+            i += 1.0;
+            let sum = densities(n, t);
+            if sum <= 0.0 {
+                continue;
+            }
+            let alpha = 1.0 - exp(-sum * dt);
+            let w = trans * alpha;
+            if w > 0.0 {
+                color += w * shade(n, t, sum);
+            }
+            trans *= 1.0 - alpha;
+            if t_half < 0.0 && trans < 0.5 {
+                t_half = t;
+            }
+        }
+    }
+    var out: FragmentOutput;
+    let c = color + trans * view.background.xyz;
+    out.color = vec4<f32>(srgb_to_linear(clamp(c, vec3<f32>(0.0), vec3<f32>(1.0))), 1.0);
+    // Depth of the point where transmittance falls below one half, so
+    // meshes and gizmos drawn later compose with the volume; far otherwise
+    // (reverse-Z: 0 is infinitely far).
+    out.depth = 0.0;
+    if t_half > 0.0 {
+        let clip = view.clip_from_world * vec4<f32>(origin + t_half * dir, 1.0);
+        out.depth = clamp(clip.z / clip.w, 0.0, 1.0);
+    }
+    return out;
+}

@@ -1,0 +1,148 @@
+//! Camera controls: orbit / pan / zoom (bevy_panorbit_camera, switched off
+//! while egui has the pointer, while painting or transforming, and in fly
+//! mode), a WASD fly mode, and snapping to the capture's views.
+
+use super::state::{EditorState, Tool};
+use crate::app::convert::{bevy_transform, projection_for};
+use crate::camera::Camera as IsrfCamera;
+use bevy::camera::Projection;
+use bevy::input::mouse::AccumulatedMouseMotion;
+use bevy::prelude::*;
+use bevy_egui::input::EguiWantsInput;
+use bevy_panorbit_camera::PanOrbitCamera;
+
+/// Marks the editor's view camera.
+#[derive(Component)]
+pub struct EditorCamera;
+
+/// Yaw / pitch / radius of a pose looking at `focus` in panorbit's
+/// convention (translation = focus + Ry(yaw)·Rx(−pitch)·(0, 0, r)).
+pub fn orbit_of(eye: Vec3, focus: Vec3) -> (f32, f32, f32) {
+    let off = eye - focus;
+    let r = off.length().max(1e-4);
+    (off.x.atan2(off.z), (off.y / r).clamp(-1.0, 1.0).asin(), r)
+}
+
+/// Points the panorbit controller at a pose: focus on the view axis at the
+/// distance of `target_depth`.
+pub fn aim_orbit(pan: &mut PanOrbitCamera, t: &Transform, target_depth: f32) {
+    let eye = t.translation;
+    let focus = eye + t.forward() * target_depth.max(0.05);
+    let (yaw, pitch, r) = orbit_of(eye, focus);
+    pan.focus = focus;
+    pan.target_focus = focus;
+    pan.yaw = Some(yaw);
+    pan.pitch = Some(pitch);
+    pan.radius = Some(r);
+    pan.target_yaw = yaw;
+    pan.target_pitch = pitch;
+    pan.target_radius = r;
+    pan.force_update = true;
+}
+
+/// Snaps the view camera to a capture view (pose and vertical FOV).
+pub fn snap_to(
+    cam: &IsrfCamera,
+    focus_depth: f32,
+    transform: &mut Transform,
+    projection: &mut Projection,
+    pan: &mut PanOrbitCamera,
+) {
+    *transform = bevy_transform(&cam.c2w);
+    if let (Projection::Perspective(p), Projection::Perspective(q)) = (projection, projection_for(&cam.intrinsics)) {
+        p.fov = q.fov;
+    }
+    aim_orbit(pan, transform, focus_depth);
+}
+
+/// Enables the orbit controller only when the mouse is free for it, and
+/// maps its buttons to the tool (brush: left paints, middle orbits).
+pub fn gate_orbit(
+    state: Res<EditorState>,
+    wants: Option<Res<EguiWantsInput>>,
+    mut cams: Query<&mut PanOrbitCamera, With<EditorCamera>>,
+) {
+    let egui_busy = wants.is_some_and(|w| w.wants_any_pointer_input());
+    for mut pan in &mut cams {
+        let enabled = !egui_busy && !state.fly && state.transform.is_none();
+        if pan.enabled != enabled {
+            pan.enabled = enabled;
+        }
+        let orbit = match state.tool {
+            Tool::Navigate => MouseButton::Left,
+            Tool::Brush => MouseButton::Middle,
+        };
+        if pan.button_orbit != orbit {
+            pan.button_orbit = orbit;
+        }
+    }
+}
+
+/// Fly mode: WASD / QE move, right drag looks around, Shift is faster.
+pub fn fly(
+    mut state: ResMut<EditorState>,
+    keys: Res<ButtonInput<KeyCode>>,
+    buttons: Res<ButtonInput<MouseButton>>,
+    motion: Res<AccumulatedMouseMotion>,
+    wants: Option<Res<EguiWantsInput>>,
+    time: Res<Time>,
+    mut cams: Query<(&mut Transform, &mut PanOrbitCamera), With<EditorCamera>>,
+) {
+    let typing = wants.as_ref().is_some_and(|w| w.wants_keyboard_input());
+    if !typing && keys.just_pressed(KeyCode::KeyF) && state.transform.is_none() {
+        state.fly = !state.fly;
+        state.status = if state.fly {
+            "fly mode: WASD/QE move, right drag looks, F leaves".into()
+        } else {
+            "orbit mode".into()
+        };
+        if !state.fly {
+            for (t, mut pan) in &mut cams {
+                aim_orbit(&mut pan, &t, 2.0);
+            }
+        }
+    }
+    if !state.fly || typing {
+        return;
+    }
+    let speed = if keys.pressed(KeyCode::ShiftLeft) { 2.0 } else { 0.6 } * time.delta_secs();
+    for (mut t, _) in &mut cams {
+        let mut v = Vec3::ZERO;
+        let pairs = [
+            (KeyCode::KeyW, t.forward().as_vec3()),
+            (KeyCode::KeyS, -t.forward().as_vec3()),
+            (KeyCode::KeyD, t.right().as_vec3()),
+            (KeyCode::KeyA, -t.right().as_vec3()),
+            (KeyCode::KeyE, Vec3::Y),
+            (KeyCode::KeyQ, -Vec3::Y),
+        ];
+        for (k, dir) in pairs {
+            if keys.pressed(k) {
+                v += dir;
+            }
+        }
+        t.translation += v * speed;
+        if buttons.pressed(MouseButton::Right) {
+            let d = motion.delta * 0.003;
+            let (mut yaw, mut pitch, _) = t.rotation.to_euler(EulerRot::YXZ);
+            yaw -= d.x;
+            pitch = (pitch - d.y).clamp(-1.5, 1.5);
+            t.rotation = Quat::from_euler(EulerRot::YXZ, yaw, pitch, 0.0);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn orbit_angles_reproduce_the_eye() {
+        let focus = Vec3::new(0.1, -0.3, 0.2);
+        let eye = Vec3::new(1.0, 0.8, -2.0);
+        let (yaw, pitch, r) = orbit_of(eye, focus);
+        let rot = Quat::from_rotation_y(yaw) * Quat::from_rotation_x(-pitch);
+        let back = focus + rot * Vec3::new(0.0, 0.0, r);
+        assert!((back - eye).length() < 1e-4, "{back} vs {eye}");
+    }
+}

@@ -1,0 +1,417 @@
+//! The interactive editor: a bevy app whose entities mirror the editing
+//! [`Session`](crate::command::Session) (fields and segmented objects, see
+//! [`crate::app::layers`]), drawn by the GPU ray marcher, with egui panels,
+//! orbit / fly cameras, a brush, transform modes and a screenshot mode.
+//!
+//! Every user action becomes a [`Command`] (or undo / redo) queued on
+//! [`session::EditorSession`], which applies them off the frame loop; the
+//! edit log, undo/redo and "save as script" therefore come from the session.
+//! Systems stay thin: they read components, queue commands or call library
+//! functions, and write components.
+
+pub mod camera;
+pub mod capture;
+pub mod session;
+pub mod state;
+pub mod tools;
+pub mod ui;
+
+use crate::app::convert::{bevy_transform, from_bevy_transform, projection_for, to_bevy_vec3};
+use crate::app::gpu::{MarchScene, RayMarchCamera, RayMarchPlugin};
+use crate::app::layers::{build_scene, CutCache, FieldLayer, ObjectLayer, OverlayMode, Preview, Selected, SessionName};
+use crate::camera::Camera as IsrfCamera;
+use crate::command::{Command, FieldSource, Session, StrokeSource};
+use crate::segment::stroke::StrokeDoc;
+use crate::segment::{Polarity, Stroke};
+use crate::{Error, Result};
+use bevy::core_pipeline::tonemapping::{DebandDither, Tonemapping};
+use bevy::prelude::*;
+use bevy::render::view::Msaa;
+use bevy_egui::{EguiPlugin, EguiPrimaryContextPass};
+use bevy_panorbit_camera::{PanOrbitCamera, PanOrbitCameraPlugin};
+use camera::{aim_orbit, EditorCamera};
+use session::{EditorSession, Request};
+use state::{CurrentStroke, EditorState, StrokeMsg};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// What to open and how.
+#[derive(Clone, Debug, Default)]
+pub struct EditorOptions {
+    /// A demo scene name (`tabletop`, `shelf`); used when no files are given.
+    pub scene: Option<String>,
+    /// Field files (.safetensors) or a composition (.ron / .json) to open.
+    pub files: Vec<PathBuf>,
+    /// Demo scene resolution (0 = 96).
+    pub res: usize,
+    /// Commands to apply at start-up (a script file).
+    pub script: Option<PathBuf>,
+    /// Save a screenshot once everything is rendered, then exit.
+    pub screenshot: Option<PathBuf>,
+    /// Window size in logical pixels (0 = 1280×720).
+    pub size: (u32, u32),
+    /// Hide the panels (clean screenshots).
+    pub no_ui: bool,
+}
+
+fn is_composition(p: &std::path::Path) -> bool {
+    matches!(p.extension().and_then(|e| e.to_str()), Some("ron") | Some("json"))
+}
+
+/// The requests that open what the options name.
+pub fn startup_requests(opts: &EditorOptions) -> Result<Vec<Request>> {
+    let mut out = Vec::new();
+    if opts.files.is_empty() {
+        let scene = opts.scene.clone().unwrap_or_else(|| "tabletop".into());
+        out.push(Request::Apply(Command::LoadField {
+            name: scene.clone(),
+            source: FieldSource::Demo {
+                scene,
+                res: if opts.res == 0 { 96 } else { opts.res },
+                seed: 0,
+            },
+            transform: None,
+        }));
+    }
+    let mut used: Vec<String> = Vec::new();
+    for p in &opts.files {
+        let abs = std::fs::canonicalize(p).map_err(|e| Error::io(p, e))?;
+        if is_composition(&abs) {
+            out.push(Request::Open(abs));
+            continue;
+        }
+        let stem = abs
+            .file_stem()
+            .map_or("field".into(), |s| s.to_string_lossy().into_owned());
+        let mut name = stem.clone();
+        let mut i = 2;
+        while used.contains(&name) {
+            name = format!("{stem} {i}");
+            i += 1;
+        }
+        used.push(name.clone());
+        out.push(Request::Apply(Command::LoadField {
+            name,
+            source: FieldSource::File(abs),
+            transform: None,
+        }));
+    }
+    if let Some(s) = &opts.script {
+        let script = crate::command::script::load_script(s)?;
+        out.extend(script.commands.into_iter().map(Request::Apply));
+    }
+    Ok(out)
+}
+
+/// The editor's model side with no window, input or GPU: the session
+/// bridge, the entity mirror, strokes to commands and the scene for the ray
+/// marcher. Tests drive it with [`StrokeMsg`]s.
+pub struct EditorCorePlugin;
+
+impl Plugin for EditorCorePlugin {
+    fn build(&self, app: &mut App) {
+        app.init_resource::<EditorState>()
+            .init_resource::<CurrentStroke>()
+            .init_resource::<SceneSync>()
+            .init_resource::<MarchScene>()
+            .add_message::<StrokeMsg>()
+            .add_systems(
+                Update,
+                (
+                    session::run_requests,
+                    session::sync_entities,
+                    strokes_to_commands,
+                    select_pending,
+                )
+                    .chain()
+                    .in_set(EditorSystems::Model),
+            )
+            .add_systems(PostUpdate, sync_scene);
+        if !app.world().contains_resource::<EditorSession>() {
+            app.insert_resource(EditorSession::new(Session::default()));
+        }
+    }
+}
+
+/// Ordering of the editor's systems.
+#[derive(SystemSet, Debug, Clone, PartialEq, Eq, Hash)]
+pub enum EditorSystems {
+    /// Input: camera, brush, transform modes, shortcuts.
+    Input,
+    /// Session requests and the entity mirror.
+    Model,
+}
+
+/// The whole editor: the core plus the GPU view, cameras, tools and (with
+/// `ui`) the egui panels.
+pub struct EditorPlugin {
+    pub ui: bool,
+}
+
+impl Plugin for EditorPlugin {
+    fn build(&self, app: &mut App) {
+        app.add_plugins((EditorCorePlugin, RayMarchPlugin, PanOrbitCameraPlugin))
+            .configure_sets(Update, EditorSystems::Input.before(EditorSystems::Model))
+            .add_systems(Startup, spawn_camera)
+            .add_systems(
+                Update,
+                (
+                    camera::gate_orbit,
+                    camera::fly,
+                    tools::brush,
+                    tools::transform_modes,
+                    keyboard_shortcuts,
+                )
+                    .chain()
+                    .in_set(EditorSystems::Input),
+            );
+        if self.ui {
+            app.add_plugins(EguiPlugin::default())
+                .add_systems(Startup, ui::spawn_ui_camera)
+                .add_systems(EguiPrimaryContextPass, ui::panels);
+        }
+    }
+}
+
+/// The view camera, aimed by the first capture view once one is known.
+pub fn spawn_camera(mut commands: Commands) {
+    let k = crate::camera::Intrinsics::from_fov_x(640, 360, 45f32.to_radians());
+    let view = IsrfCamera::look_at(k, glam::Vec3::new(0.0, 1.0, 3.0), glam::Vec3::ZERO, glam::Vec3::Y);
+    let transform = bevy_transform(&view.c2w);
+    let mut pan = PanOrbitCamera::default();
+    aim_orbit(&mut pan, &transform, 3.0);
+    commands.spawn((
+        Camera3d::default(),
+        transform,
+        projection_for(&view.intrinsics),
+        Tonemapping::None,
+        DebandDither::Disabled,
+        Msaa::Off,
+        RayMarchCamera::default(),
+        pan,
+        EditorCamera,
+    ));
+}
+
+/// Rebuilds the ray marcher's scene when the session, the entities (previews)
+/// or the overlay settings change.
+#[derive(Resource, Default)]
+pub struct SceneSync {
+    cuts: CutCache,
+    version: u64,
+    /// Whether the view was aimed at the first capture view already.
+    aimed: bool,
+    /// Scenes built so far.
+    pub builds: u64,
+}
+
+#[allow(clippy::type_complexity, clippy::too_many_arguments)]
+pub fn sync_scene(
+    mut sync: ResMut<SceneSync>,
+    mut march: ResMut<MarchScene>,
+    mut state: ResMut<EditorState>,
+    es: Res<EditorSession>,
+    objects: Query<(&SessionName, &ObjectLayer, &Transform, Has<Selected>)>,
+    fields: Query<(&SessionName, &FieldLayer, Has<Selected>)>,
+    changed: Query<(), Or<(Changed<Transform>, Changed<ObjectLayer>, Added<Selected>)>>,
+    removed_sel: RemovedComponents<Selected>,
+    mut cams: Query<(&mut Transform, &mut Projection, &mut PanOrbitCamera), (With<EditorCamera>, Without<ObjectLayer>)>,
+) {
+    let dirty = sync.version != es.version || !changed.is_empty() || !removed_sel.is_empty() || state.is_changed();
+    if !dirty {
+        return;
+    }
+    sync.version = es.version;
+    // Aim at the first capture view once there is one.
+    if !sync.aimed {
+        if let (Some((_, cam)), Ok((mut t, mut p, mut pan))) = (state.capture_cameras.first(), cams.single_mut()) {
+            let center = es
+                .state
+                .fields
+                .first()
+                .map_or(Vec3::ZERO, |f| to_bevy_vec3(f.field.bounds().center()));
+            let depth = (center - to_bevy_vec3(cam.position())).dot(to_bevy_vec3(cam.forward()));
+            camera::snap_to(cam, depth, &mut t, &mut p, &mut pan);
+            sync.aimed = true;
+        }
+    }
+    let mut previews = Vec::new();
+    let mut selected = None;
+    for (name, o, t, sel) in &objects {
+        if sel {
+            selected = Some(name.0.clone());
+        }
+        let Some(entry) = es.state.objects.iter().find(|e| e.name == name.0) else {
+            continue;
+        };
+        let edit = entry.color_edit.unwrap_or_default();
+        if *t != bevy_transform(&entry.transform) || o.color_edit != edit {
+            previews.push(Preview {
+                object: name.0.clone(),
+                transform: from_bevy_transform(t),
+                color_edit: o.color_edit,
+            });
+        }
+    }
+    let mode = if fields.iter().any(|f| f.2) {
+        OverlayMode::default()
+    } else {
+        state.overlay
+    };
+    let mut st = es.state.clone();
+    st.background = state.background;
+    match build_scene(&st, &previews, selected.as_deref(), mode, &mut sync.cuts) {
+        Ok((scene, overlay)) => {
+            let step = if scene.layers.is_empty() {
+                None
+            } else {
+                Some(scene.default_step() * state.step_scale)
+            };
+            march.scene = Some(Arc::new(scene));
+            march.overlay = overlay;
+            march.step = step;
+            sync.builds += 1;
+        }
+        Err(e) => state.bypass_change_detection().error(e),
+    }
+}
+
+/// Turns finished strokes into `Stroke` commands on the selected object (a
+/// new object of the selected or first field when none is selected).
+pub fn strokes_to_commands(
+    mut strokes: MessageReader<StrokeMsg>,
+    mut state: ResMut<EditorState>,
+    mut es: ResMut<EditorSession>,
+    selected: Query<(&SessionName, Has<ObjectLayer>), With<Selected>>,
+) {
+    for s in strokes.read() {
+        let sel = selected.iter().next();
+        let (object, field) = match sel {
+            Some((n, true)) => (n.0.clone(), None),
+            other => {
+                if s.polarity == Polarity::Negative {
+                    state.error("select an object to subtract a negative stroke from");
+                    continue;
+                }
+                let field = other.map(|(n, _)| n.0.clone());
+                (es.fresh_name("object"), field)
+            }
+        };
+        let stroke = Stroke {
+            camera: s.camera,
+            points: s.points.clone(),
+            radius: s.radius,
+            polarity: s.polarity,
+            object: object.clone(),
+            joined: true,
+        };
+        state.pending_select = Some(object.clone());
+        es.apply(Command::Stroke {
+            object,
+            field,
+            polarity: Some(s.polarity),
+            source: StrokeSource::Inline(StrokeDoc::from_stroke(&stroke)),
+        });
+    }
+}
+
+/// Selects what a stroke just created, once the session has it.
+pub fn select_pending(
+    mut commands: Commands,
+    mut state: ResMut<EditorState>,
+    es: Res<EditorSession>,
+    selected: Query<Entity, With<Selected>>,
+    named: Query<(Entity, &SessionName)>,
+) {
+    let Some(name) = state.pending_select.clone() else {
+        return;
+    };
+    if let Some((e, _)) = named.iter().find(|(_, n)| n.0 == name) {
+        for old in &selected {
+            if old != e {
+                commands.entity(old).remove::<Selected>();
+            }
+        }
+        commands.entity(e).insert(Selected);
+        state.pending_select = None;
+    } else if !es.busy() {
+        state.pending_select = None;
+    }
+}
+
+/// Undo / redo, tool toggle, delete and grow shortcuts.
+pub fn keyboard_shortcuts(
+    keys: Res<ButtonInput<KeyCode>>,
+    wants: Option<Res<bevy_egui::input::EguiWantsInput>>,
+    mut state: ResMut<EditorState>,
+    mut es: ResMut<EditorSession>,
+    selected: Query<(&SessionName, Has<ObjectLayer>), With<Selected>>,
+) {
+    if wants.is_some_and(|w| w.wants_keyboard_input()) || state.transform.is_some() {
+        return;
+    }
+    let ctrl = keys.any_pressed([KeyCode::ControlLeft, KeyCode::ControlRight, KeyCode::SuperLeft]);
+    let shift = keys.any_pressed([KeyCode::ShiftLeft, KeyCode::ShiftRight]);
+    if ctrl && keys.just_pressed(KeyCode::KeyZ) {
+        es.push(if shift { Request::Redo } else { Request::Undo });
+        return;
+    }
+    if ctrl && keys.just_pressed(KeyCode::KeyY) {
+        es.push(Request::Redo);
+        return;
+    }
+    if ctrl {
+        return;
+    }
+    if keys.just_pressed(KeyCode::KeyB) {
+        state.tool = match state.tool {
+            state::Tool::Brush => state::Tool::Navigate,
+            state::Tool::Navigate => state::Tool::Brush,
+        };
+    }
+    let Some((name, is_object)) = selected.iter().next() else {
+        return;
+    };
+    if !is_object {
+        return;
+    }
+    let object = name.0.clone();
+    if keys.just_pressed(KeyCode::Delete) || keys.just_pressed(KeyCode::KeyX) {
+        es.apply(Command::Remove { object });
+    } else if keys.just_pressed(KeyCode::Equal) || keys.just_pressed(KeyCode::NumpadAdd) {
+        es.apply(Command::Grow {
+            object,
+            steps: crate::segment::Growth::Steps(1),
+        });
+    }
+}
+
+/// Opens the editor window and runs until it is closed (or, with
+/// `screenshot`, until the screenshot is saved).
+pub fn run(opts: EditorOptions) -> Result<()> {
+    let requests = startup_requests(&opts)?;
+    let (w, h) = if opts.size.0 == 0 { (1280, 720) } else { opts.size };
+    let mut app = App::new();
+    app.add_plugins(DefaultPlugins.set(WindowPlugin {
+        primary_window: Some(Window {
+            title: "isrf editor".into(),
+            resolution: (w, h).into(),
+            ..default()
+        }),
+        ..default()
+    }))
+    .add_plugins(bevy::diagnostic::FrameTimeDiagnosticsPlugin::default());
+    let cwd = std::env::current_dir().map_err(|e| Error::io(".", e))?;
+    let mut es = EditorSession::new(Session::new(cwd.clone(), cwd));
+    for r in requests {
+        es.push(r);
+    }
+    app.insert_resource(es).add_plugins(EditorPlugin { ui: !opts.no_ui });
+    if let Some(path) = &opts.screenshot {
+        app.add_plugins(capture::ScreenshotPlugin { path: path.clone() });
+    }
+    match app.run() {
+        AppExit::Success => Ok(()),
+        AppExit::Error(code) => Err(Error::invalid(format!("the editor exited with code {code}"))),
+    }
+}

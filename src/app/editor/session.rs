@@ -1,0 +1,317 @@
+//! The editor's bridge to the library's [`Session`]: every user action is a
+//! [`Command`] (or undo / redo) queued here and applied one at a time on
+//! bevy's async compute pool, so strokes, growth, loading and exports never
+//! block the frame loop. The session moves into the task and back; the
+//! panels show the last finished state meanwhile. After each change the
+//! entities are re-synced from the session's state ([`sync_entities`]).
+
+use super::state::EditorState;
+use crate::app::convert::bevy_transform;
+use crate::app::layers::{FieldLayer, ObjectLayer, SessionName};
+use crate::command::composition;
+use crate::command::session::{State, StepOutput};
+use crate::command::{Command, Session};
+use crate::Result;
+use bevy::prelude::*;
+use bevy::tasks::{futures::check_ready, AsyncComputeTaskPool, Task};
+use std::collections::VecDeque;
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// One queued request.
+#[derive(Clone, Debug)]
+pub enum Request {
+    Apply(Command),
+    Undo,
+    Redo,
+    /// Replace the session by a composition file.
+    Open(PathBuf),
+}
+
+impl Request {
+    fn label(&self) -> String {
+        match self {
+            Request::Apply(c) => c.kind().replace('_', " "),
+            Request::Undo => "undo".into(),
+            Request::Redo => "redo".into(),
+            Request::Open(p) => format!("opening {}", p.display()),
+        }
+    }
+}
+
+type Outcome = (Session, Result<StepOutput>);
+
+struct Running {
+    label: String,
+    started: Instant,
+    request: Request,
+    task: Task<Outcome>,
+}
+
+#[derive(Resource)]
+pub struct EditorSession {
+    /// `None` while a request runs (the task owns it).
+    session: Option<Session>,
+    /// The latest finished state (what the entities mirror).
+    pub state: State,
+    /// Bumped whenever `state` changes.
+    pub version: u64,
+    queue: VecDeque<Request>,
+    running: Option<Running>,
+    pub can_undo: bool,
+    pub can_redo: bool,
+    /// Requests finished so far.
+    pub finished: u64,
+    /// Command log of the session (for "save script").
+    pub log_len: usize,
+}
+
+impl EditorSession {
+    pub fn new(session: Session) -> Self {
+        EditorSession {
+            state: session.state.clone(),
+            session: Some(session),
+            version: 1,
+            queue: VecDeque::new(),
+            running: None,
+            can_undo: false,
+            can_redo: false,
+            finished: 0,
+            log_len: 0,
+        }
+    }
+    pub fn push(&mut self, r: Request) {
+        self.queue.push_back(r);
+    }
+    pub fn apply(&mut self, c: Command) {
+        self.push(Request::Apply(c));
+    }
+    pub fn busy(&self) -> bool {
+        self.running.is_some() || !self.queue.is_empty()
+    }
+    pub fn progress(&self) -> Option<(String, f32)> {
+        self.running
+            .as_ref()
+            .map(|r| (r.label.clone(), r.started.elapsed().as_secs_f32()))
+    }
+    /// The session, when no request holds it.
+    pub fn session(&self) -> Option<&Session> {
+        self.session.as_ref()
+    }
+    /// A name not used by any field or object, from `base`.
+    pub fn fresh_name(&self, base: &str) -> String {
+        let used =
+            |n: &str| self.state.fields.iter().any(|f| f.name == n) || self.state.objects.iter().any(|o| o.name == n);
+        if !used(base) {
+            return base.to_string();
+        }
+        (2..).map(|i| format!("{base} {i}")).find(|n| !used(n)).unwrap()
+    }
+}
+
+fn run(mut session: Session, r: Request) -> Outcome {
+    let out = match &r {
+        Request::Apply(c) => session.apply(c),
+        Request::Undo => Ok(StepOutput {
+            message: session
+                .undo()
+                .map_or("nothing to undo".into(), |c| format!("undid {}", c.kind())),
+            ..Default::default()
+        }),
+        Request::Redo => Ok(StepOutput {
+            message: session
+                .redo()
+                .map_or("nothing to redo".into(), |c| format!("redid {}", c.kind())),
+            ..Default::default()
+        }),
+        Request::Open(p) => {
+            let out_dir = session.out_dir.clone();
+            match composition::load(p, &out_dir) {
+                Ok(s) => {
+                    session = s;
+                    Ok(StepOutput {
+                        message: format!("opened {}", p.display()),
+                        ..Default::default()
+                    })
+                }
+                Err(e) => Err(e),
+            }
+        }
+    };
+    (session, out)
+}
+
+/// Collects the finished request and starts the next one.
+pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState>, mut names: Query<&mut SessionName>) {
+    if let Some(running) = es.running.as_mut() {
+        let Some((session, result)) = check_ready(&mut running.task) else {
+            return;
+        };
+        let running = es.running.take().unwrap();
+        es.finished += 1;
+        match result {
+            Ok(out) => {
+                if let Request::Apply(Command::Rename { target, name }) = &running.request {
+                    // Keep the entity (and the selection) across a rename.
+                    for mut n in &mut names {
+                        if &n.0 == target {
+                            n.0 = name.clone();
+                        }
+                    }
+                }
+                if let Some(t) = out.timings {
+                    state.last_timings = Some(t);
+                }
+                state.status = if out.message.is_empty() {
+                    format!("{} done", running.label)
+                } else {
+                    out.message
+                };
+                if !out.files.is_empty() {
+                    state.status += &format!(" ({} file(s) written)", out.files.len());
+                }
+            }
+            Err(e) => {
+                state.status = format!("{} failed", running.label);
+                state.error(e);
+            }
+        }
+        es.can_undo = session.can_undo();
+        es.can_redo = session.can_redo();
+        es.log_len = session.log().len();
+        es.state = session.state.clone();
+        es.version += 1;
+        es.session = Some(session);
+    }
+    let Some(request) = es.queue.pop_front() else {
+        return;
+    };
+    let session = es.session.take().expect("no request runs, so the session is here");
+    let label = request.label();
+    let r = request.clone();
+    let task = AsyncComputeTaskPool::get().spawn(async move { run(session, r) });
+    state.bypass_change_detection().status = format!("{label}…");
+    es.running = Some(Running {
+        label,
+        started: Instant::now(),
+        request,
+        task,
+    });
+}
+
+/// Mirrors the session's fields and objects as entities (matched by name),
+/// spawning, updating and despawning as needed; collects capture views.
+pub fn sync_entities(
+    mut commands: Commands,
+    es: Res<EditorSession>,
+    mut seen: Local<u64>,
+    mut state: ResMut<EditorState>,
+    mut fields: Query<(Entity, &SessionName, &mut FieldLayer, &mut Transform), Without<ObjectLayer>>,
+    mut objects: Query<(Entity, &SessionName, &mut ObjectLayer, &mut Transform), Without<FieldLayer>>,
+) {
+    if *seen == es.version {
+        return;
+    }
+    *seen = es.version;
+    let st = &es.state;
+    let mut field_ids = Vec::new();
+    for f in &st.fields {
+        let t = bevy_transform(&f.transform);
+        let layer = FieldLayer {
+            field: f.field.clone(),
+            hidden: !f.visible,
+        };
+        let existing = fields.iter_mut().find(|(_, n, _, _)| n.0 == f.name);
+        let e = match existing {
+            Some((e, _, mut fl, mut ft)) => {
+                if !std::sync::Arc::ptr_eq(&fl.field, &layer.field) || fl.hidden != layer.hidden {
+                    *fl = layer;
+                }
+                if *ft != t {
+                    *ft = t;
+                }
+                e
+            }
+            None => {
+                if let Some(d) = &f.demo {
+                    let views = std::iter::once(("stroke view".to_string(), d.stroke_camera))
+                        .chain(d.cameras.frames.iter().map(|c| (c.name.clone(), c.camera)));
+                    let views: Vec<_> = views
+                        .map(|(n, mut c)| {
+                            c.c2w = f.transform * c.c2w;
+                            (format!("{}: {n}", f.name), c)
+                        })
+                        .collect();
+                    state.capture_cameras.extend(views);
+                } else if let crate::command::FieldSource::File(p) = &f.source {
+                    // transforms.json beside a field file gives its views.
+                    let tj = p.parent().map(|d| d.join("transforms.json"));
+                    if let Some(set) = tj
+                        .filter(|t| t.exists())
+                        .and_then(|t| crate::camera::CameraSet::load(&t).ok())
+                    {
+                        state.capture_cameras.extend(set.frames.into_iter().map(|c| {
+                            let mut cam = c.camera;
+                            cam.c2w = f.transform * cam.c2w;
+                            (format!("{}: {}", f.name, c.name), cam)
+                        }));
+                    }
+                }
+                commands
+                    .spawn((Name::new(f.name.clone()), SessionName(f.name.clone()), layer, t))
+                    .id()
+            }
+        };
+        field_ids.push((f.name.clone(), e));
+    }
+    let mut keep: Vec<Entity> = field_ids.iter().map(|(_, e)| *e).collect();
+    for o in &st.objects {
+        let Some(&(_, fe)) = field_ids.iter().find(|(n, _)| *n == o.field) else {
+            continue;
+        };
+        let t = bevy_transform(&o.transform);
+        let layer = ObjectLayer {
+            field: fe,
+            bitmap: o.mask.clone(),
+            color_edit: o.color_edit.unwrap_or_default(),
+            hidden: !o.visible,
+            removed: o.removed,
+            duplicate: o.duplicate,
+        };
+        let existing = objects.iter_mut().find(|(_, n, _, _)| n.0 == o.name);
+        let e = match existing {
+            Some((e, _, mut ol, mut ot)) => {
+                *ol = layer;
+                if *ot != t {
+                    *ot = t;
+                }
+                e
+            }
+            None => commands
+                .spawn((Name::new(o.name.clone()), SessionName(o.name.clone()), layer, t))
+                .id(),
+        };
+        keep.push(e);
+    }
+    for (e, n, _, _) in fields.iter() {
+        if !keep.contains(&e) {
+            commands.entity(e).despawn();
+        } else {
+            commands.entity(e).insert(Name::new(n.0.clone()));
+        }
+    }
+    for (e, n, _, _) in objects.iter() {
+        if !keep.contains(&e) {
+            commands.entity(e).despawn();
+        } else {
+            commands.entity(e).insert(Name::new(n.0.clone()));
+        }
+    }
+    // Parameters follow the session (undo of SetParams included).
+    if state.params != st.params {
+        state.params = st.params;
+    }
+    if state.background != st.background {
+        state.background = st.background;
+    }
+}

@@ -1,0 +1,124 @@
+//! Editor resources and messages: tool settings, segmentation parameters,
+//! status and errors shown in the UI, and the strokes the brush produces.
+
+use crate::app::layers::OverlayMode;
+use crate::camera::Camera;
+use crate::segment::{Polarity, SegmentParams, Timings};
+use bevy::prelude::*;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Tool {
+    /// Orbit / pan / zoom with the mouse.
+    #[default]
+    Navigate,
+    /// Left drag paints a stroke (Ctrl or the toggle: negative).
+    Brush,
+}
+
+/// Keyboard transform modes (Blender-like G / R / S).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TransformMode {
+    Move,
+    Rotate,
+    Scale,
+}
+
+/// A transform drag in progress on the selected object.
+#[derive(Clone, Copy, Debug)]
+pub struct TransformDrag {
+    pub mode: TransformMode,
+    pub entity: Entity,
+    /// The object's transform when the drag began (Esc restores it).
+    pub start: Transform,
+    /// Cursor position (logical) when the drag began.
+    pub cursor0: Vec2,
+}
+
+#[derive(Resource)]
+pub struct EditorState {
+    pub tool: Tool,
+    /// Brush half-size in pixels (the authors' 7×7 brush is 3).
+    pub brush_radius: u32,
+    /// Paint negative strokes (also while Ctrl is held).
+    pub negative: bool,
+    pub params: SegmentParams,
+    /// Re-segment the selected object when a slider changes.
+    pub live: bool,
+    pub overlay: OverlayMode,
+    pub fly: bool,
+    /// Sample step multiplier (1 = the reference step; larger is faster).
+    pub step_scale: f32,
+    pub background: [f32; 3],
+    pub transform: Option<TransformDrag>,
+    /// One-line status (bottom bar).
+    pub status: String,
+    /// Errors not yet dismissed, newest last.
+    pub errors: Vec<String>,
+    pub last_timings: Option<Timings>,
+    /// Views of the capture (snap targets).
+    pub capture_cameras: Vec<(String, Camera)>,
+    /// Path typed in the file menu.
+    pub path_input: String,
+    /// Select this object once the session has it (after a stroke made it).
+    pub pending_select: Option<String>,
+    /// Name being edited in the selection panel.
+    pub rename: Option<(Entity, String)>,
+}
+
+impl Default for EditorState {
+    fn default() -> Self {
+        EditorState {
+            tool: Tool::Navigate,
+            brush_radius: 3,
+            negative: false,
+            params: SegmentParams::default(),
+            live: false,
+            overlay: OverlayMode {
+                tint_selected: true,
+                dim_others: false,
+            },
+            fly: false,
+            step_scale: 1.0,
+            background: [1.0; 3],
+            transform: None,
+            status: "ready".into(),
+            errors: Vec::new(),
+            last_timings: None,
+            capture_cameras: Vec::new(),
+            path_input: String::new(),
+            pending_select: None,
+            rename: None,
+        }
+    }
+}
+
+impl EditorState {
+    pub fn error(&mut self, e: impl std::fmt::Display) {
+        let msg = e.to_string();
+        bevy::log::error!("{msg}");
+        self.errors.push(msg);
+        if self.errors.len() > 8 {
+            self.errors.remove(0);
+        }
+    }
+}
+
+/// A finished brush stroke on the current view.
+#[derive(Message, Clone, Debug)]
+pub struct StrokeMsg {
+    pub camera: Camera,
+    /// Continuous pixel coordinates of the view.
+    pub points: Vec<glam::Vec2>,
+    pub radius: u32,
+    pub polarity: Polarity,
+}
+
+/// The stroke being painted (drawn over the view by the UI).
+#[derive(Resource, Default)]
+pub struct CurrentStroke {
+    /// Logical window coordinates, for drawing.
+    pub screen: Vec<Vec2>,
+    /// Physical pixel coordinates relative to the view, for segmenting.
+    pub pixels: Vec<glam::Vec2>,
+    pub negative: bool,
+}

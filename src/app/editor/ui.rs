@@ -1,0 +1,685 @@
+//! egui panels: menu bar (file, export, edit, view), outliner (fields and
+//! objects: select, rename, hide, remove, delete, duplicate), tools (brush,
+//! segmentation sliders, growth), the selection's transform and appearance,
+//! a status line with the last stroke's per-stage timings, progress and
+//! errors, and the stroke being painted drawn over the view.
+//!
+//! Widgets only read entities and write previews; every change the user
+//! commits becomes a [`Command`] queued on the session.
+
+use super::camera::{snap_to, EditorCamera};
+use super::session::{EditorSession, Request};
+use super::state::{CurrentStroke, EditorState, Tool};
+use super::tools::transform_command;
+use crate::app::convert::{bevy_transform, to_bevy_vec3};
+use crate::app::gpu::SharedStatus;
+use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
+use crate::command::{CameraSource, Command, Export, FieldSource};
+use crate::segment::Growth;
+use bevy::camera::visibility::RenderLayers;
+use bevy::camera::{CameraOutputMode, ClearColorConfig, Projection, Viewport};
+use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
+use bevy::prelude::*;
+use bevy::render::render_resource::BlendState;
+use bevy::window::PrimaryWindow;
+use bevy_egui::{egui, EguiContexts, EguiGlobalSettings, PrimaryEguiContext};
+use bevy_panorbit_camera::PanOrbitCamera;
+use std::path::PathBuf;
+
+/// A separate full-window camera carries egui, so that the 3D view can be
+/// limited to the area the panels leave free.
+pub fn spawn_ui_camera(mut commands: Commands, mut settings: ResMut<EguiGlobalSettings>) {
+    settings.auto_create_primary_context = false;
+    commands.spawn((
+        PrimaryEguiContext,
+        Camera2d,
+        RenderLayers::none(),
+        Camera {
+            order: 1,
+            output_mode: CameraOutputMode::Write {
+                blend_state: Some(BlendState::ALPHA_BLENDING),
+                clear_color: ClearColorConfig::None,
+            },
+            clear_color: ClearColorConfig::Custom(Color::NONE),
+            ..default()
+        },
+    ));
+}
+
+/// Whether an edit widget's change is final (drag released, focus left, or
+/// a click / keyboard change).
+fn committed(r: &egui::Response) -> bool {
+    r.drag_stopped() || r.lost_focus() || (r.changed() && !r.dragged() && !r.has_focus())
+}
+
+type ObjectQuery<'w, 's> = Query<
+    'w,
+    's,
+    (
+        Entity,
+        &'static SessionName,
+        &'static mut ObjectLayer,
+        &'static mut Transform,
+    ),
+    (Without<EditorCamera>, Without<FieldLayer>),
+>;
+
+#[allow(clippy::too_many_arguments)]
+pub fn panels(
+    mut contexts: EguiContexts,
+    mut commands: Commands,
+    mut state: ResMut<EditorState>,
+    mut es: ResMut<EditorSession>,
+    stroke: Res<CurrentStroke>,
+    status: Res<SharedStatus>,
+    diagnostics: Option<Res<DiagnosticsStore>>,
+    fields: Query<(Entity, &SessionName, &FieldLayer), Without<ObjectLayer>>,
+    mut objects: ObjectQuery,
+    selected: Query<Entity, With<Selected>>,
+    windows: Query<&Window, With<PrimaryWindow>>,
+    mut cams: Query<(&mut Camera, &mut Transform, &mut Projection, &mut PanOrbitCamera), With<EditorCamera>>,
+) -> Result {
+    let ctx = contexts.ctx_mut()?.clone();
+    let sel = selected.iter().next();
+    let mut select: Option<Option<Entity>> = None;
+    let mut snap = None;
+    let mut root = egui::Ui::new(
+        ctx.clone(),
+        "isrf_root".into(),
+        egui::UiBuilder::new()
+            .layer_id(egui::LayerId::background())
+            .max_rect(ctx.viewport_rect()),
+    );
+
+    egui::Panel::top("menu").show(&mut root, |ui| {
+        egui::MenuBar::new().ui(ui, |ui| {
+            menu_bar(ui, &mut state, &mut es, sel, &fields, &objects, &mut snap);
+        });
+    });
+    egui::Panel::bottom("status").show(&mut root, |ui| {
+        status_line(ui, &mut state, &es, &status, diagnostics.as_deref());
+    });
+    egui::Panel::left("outliner").default_size(230.0).show(&mut root, |ui| {
+        outliner(ui, &mut es, sel, &fields, &objects, &mut select);
+    });
+    egui::Panel::right("tools").default_size(290.0).show(&mut root, |ui| {
+        egui::ScrollArea::vertical().show(ui, |ui| {
+            tools_panel(ui, &mut state, &mut es, sel, &objects);
+            if let Some(e) = sel {
+                if objects.contains(e) {
+                    selection_panel(ui, &mut state, &mut es, e, &mut objects);
+                } else if let Ok((_, name, f)) = fields.get(e) {
+                    ui.separator();
+                    ui.heading(format!("Field {}", name.0));
+                    ui.label(format!(
+                        "{:?} grid, {:.1} MB",
+                        f.field.res(),
+                        f.field.memory_bytes() as f64 / 1e6
+                    ));
+                }
+            }
+            view_panel(ui, &mut state, &mut snap);
+        });
+    });
+    // The 3D view gets what the panels leave.
+    let free = root.available_rect_before_wrap();
+    draw_stroke(&ctx, &stroke, &state);
+
+    if let Some(s) = select {
+        for old in &selected {
+            commands.entity(old).remove::<Selected>();
+        }
+        if let Some(e) = s {
+            commands.entity(e).insert(Selected);
+        }
+    }
+    let Ok((mut cam, mut t, mut p, mut pan)) = cams.single_mut() else {
+        return Ok(());
+    };
+    if let Some(i) = snap {
+        if let Some((_, c)) = state.capture_cameras.get(i).cloned() {
+            let center = es
+                .state
+                .fields
+                .first()
+                .map_or(Vec3::ZERO, |f| to_bevy_vec3(f.field.bounds().center()));
+            let depth = (center - to_bevy_vec3(c.position())).dot(to_bevy_vec3(c.forward()));
+            snap_to(&c, depth, &mut t, &mut p, &mut pan);
+        }
+    }
+    if let Ok(window) = windows.single() {
+        let scale = window.scale_factor();
+        let min = (free.min.to_vec2() * scale).max(egui::Vec2::ZERO);
+        let size = (free.size() * scale).max(egui::vec2(16.0, 16.0));
+        let win = egui::vec2(window.physical_width() as f32, window.physical_height() as f32);
+        let size = size.min(win - min).max(egui::vec2(1.0, 1.0));
+        let vp = Viewport {
+            physical_position: UVec2::new(min.x as u32, min.y as u32),
+            physical_size: UVec2::new(size.x as u32, size.y as u32),
+            ..default()
+        };
+        let same = cam
+            .viewport
+            .as_ref()
+            .is_some_and(|v| v.physical_position == vp.physical_position && v.physical_size == vp.physical_size);
+        if !same && vp.physical_size.x > 0 && vp.physical_size.y > 0 {
+            cam.viewport = Some(vp);
+        }
+    }
+    Ok(())
+}
+
+fn path_of(s: &str) -> Option<PathBuf> {
+    let t = s.trim();
+    (!t.is_empty()).then(|| PathBuf::from(t))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn menu_bar(
+    ui: &mut egui::Ui,
+    state: &mut EditorState,
+    es: &mut EditorSession,
+    sel: Option<Entity>,
+    fields: &Query<(Entity, &SessionName, &FieldLayer), Without<ObjectLayer>>,
+    objects: &ObjectQuery,
+    snap: &mut Option<usize>,
+) {
+    ui.menu_button("File", |ui| {
+        ui.label("Path:");
+        ui.text_edit_singleline(&mut state.path_input);
+        let path = path_of(&state.path_input);
+        let has = path.is_some();
+        if ui
+            .add_enabled(has, egui::Button::new("Open composition (.ron / .json)"))
+            .clicked()
+        {
+            es.push(Request::Open(path.clone().unwrap()));
+        }
+        if ui
+            .add_enabled(has, egui::Button::new("Add field file to the composition"))
+            .clicked()
+        {
+            let p = path.clone().unwrap();
+            let stem = p
+                .file_stem()
+                .map_or("field".into(), |s| s.to_string_lossy().into_owned());
+            let name = es.fresh_name(&stem);
+            es.apply(Command::LoadField {
+                name,
+                source: FieldSource::File(p),
+                transform: None,
+            });
+        }
+        ui.separator();
+        if ui.add_enabled(has, egui::Button::new("Save composition")).clicked() {
+            es.apply(Command::Export(Export::Composition {
+                out: path.clone().unwrap(),
+            }));
+        }
+        if ui
+            .add_enabled(has, egui::Button::new("Save edit log as script"))
+            .clicked()
+        {
+            es.apply(Command::Export(Export::Script {
+                out: path.clone().unwrap(),
+            }));
+        }
+    });
+    ui.menu_button("Edit", |ui| {
+        if ui
+            .add_enabled(es.can_undo, egui::Button::new("Undo (Ctrl+Z)"))
+            .clicked()
+        {
+            es.push(Request::Undo);
+        }
+        if ui
+            .add_enabled(es.can_redo, egui::Button::new("Redo (Ctrl+Shift+Z)"))
+            .clicked()
+        {
+            es.push(Request::Redo);
+        }
+        ui.label(format!("{} edits in the log", es.log_len));
+    });
+    ui.menu_button("Export", |ui| {
+        ui.label("Path (file, or folder for masks):");
+        ui.text_edit_singleline(&mut state.path_input);
+        let path = path_of(&state.path_input);
+        let target = sel.and_then(|e| {
+            objects
+                .get(e)
+                .ok()
+                .map(|o| (o.1 .0.clone(), Some(o.2.field)))
+                .or_else(|| fields.get(e).ok().map(|f| (f.1 .0.clone(), None)))
+        });
+        let (Some(out), Some((name, field))) = (path, target) else {
+            ui.label("select an object (or a field) and type a path");
+            return;
+        };
+        if ui.button("Mesh (.glb / .ply)").clicked() {
+            es.apply(Command::Export(Export::Mesh {
+                target: name.clone(),
+                out: out.clone(),
+                iso: None,
+            }));
+        }
+        let Some(fe) = field else { return };
+        if ui.button("Object field (.safetensors)").clicked() {
+            es.apply(Command::Export(Export::ObjectField {
+                object: name.clone(),
+                out: out.clone(),
+                margin: 2,
+            }));
+        }
+        if ui.button("3D mask bitmap (.safetensors)").clicked() {
+            es.apply(Command::Export(Export::Bitmap {
+                object: name.clone(),
+                out: out.clone(),
+            }));
+        }
+        let field_name = fields.get(fe).map(|f| f.1 .0.clone()).unwrap_or_default();
+        let is_demo = es.state.fields.iter().any(|f| f.name == field_name && f.demo.is_some());
+        if ui
+            .add_enabled(is_demo, egui::Button::new("2D masks of the capture views"))
+            .on_disabled_hover_text("needs a field with capture cameras (demo scenes)")
+            .clicked()
+        {
+            es.apply(Command::Export(Export::Masks {
+                object: name,
+                cameras: CameraSource::Demo {
+                    field: field_name,
+                    eval: false,
+                },
+                out,
+                downscale: 1,
+            }));
+        }
+    });
+    ui.menu_button("View", |ui| {
+        ui.checkbox(&mut state.fly, "Fly mode (F)");
+        ui.separator();
+        ui.label("Snap to a capture view:");
+        egui::ScrollArea::vertical().max_height(260.0).show(ui, |ui| {
+            for (i, (name, _)) in state.capture_cameras.iter().enumerate() {
+                if ui.button(name).clicked() {
+                    *snap = Some(i);
+                }
+            }
+        });
+    });
+}
+
+fn outliner(
+    ui: &mut egui::Ui,
+    es: &mut EditorSession,
+    sel: Option<Entity>,
+    fields: &Query<(Entity, &SessionName, &FieldLayer), Without<ObjectLayer>>,
+    objects: &ObjectQuery,
+    select: &mut Option<Option<Entity>>,
+) {
+    ui.heading("Outliner");
+    egui::ScrollArea::vertical().show(ui, |ui| {
+        for (fe, fname, f) in fields.iter() {
+            ui.horizontal(|ui| {
+                if ui.selectable_label(sel == Some(fe), format!("▣ {}", fname.0)).clicked() {
+                    *select = Some(Some(fe));
+                }
+                if ui.small_button(if f.hidden { "show" } else { "hide" }).clicked() {
+                    es.apply(Command::SetVisible {
+                        target: fname.0.clone(),
+                        visible: f.hidden,
+                    });
+                }
+                if ui.small_button("delete").clicked() {
+                    es.apply(Command::Delete {
+                        target: fname.0.clone(),
+                    });
+                }
+            });
+            ui.indent(fe, |ui| {
+                for (oe, oname, o, _) in objects.iter() {
+                    if o.field != fe {
+                        continue;
+                    }
+                    let name = oname.0.clone();
+                    ui.horizontal(|ui| {
+                        let label = if o.removed {
+                            format!("✂ {name} (removed)")
+                        } else {
+                            format!("● {name} ({} vx)", o.bitmap.count())
+                        };
+                        if ui.selectable_label(sel == Some(oe), label).clicked() {
+                            *select = Some(Some(oe));
+                        }
+                    });
+                    ui.horizontal(|ui| {
+                        if ui.small_button(if o.hidden { "show" } else { "hide" }).clicked() {
+                            es.apply(Command::SetVisible {
+                                target: name.clone(),
+                                visible: o.hidden,
+                            });
+                        }
+                        if o.removed {
+                            if ui.small_button("restore").clicked() {
+                                es.apply(Command::Restore { object: name.clone() });
+                            }
+                        } else if ui
+                            .small_button("remove")
+                            .on_hover_text("take it out of the scene (leaves a hole)")
+                            .clicked()
+                        {
+                            es.apply(Command::Remove { object: name.clone() });
+                        }
+                        if ui.small_button("duplicate").clicked() {
+                            let copy = es.fresh_name(&format!("{name} copy"));
+                            es.apply(Command::Duplicate {
+                                object: name.clone(),
+                                name: copy,
+                                transform: Some(crate::command::session::translate(glam::Vec3::new(0.15, 0.0, 0.0))),
+                            });
+                        }
+                        if ui
+                            .small_button("delete")
+                            .on_hover_text("forget the segmentation (the field is whole again)")
+                            .clicked()
+                        {
+                            es.apply(Command::Delete { target: name.clone() });
+                            *select = Some(None);
+                        }
+                    });
+                }
+            });
+        }
+        if fields.is_empty() {
+            ui.label(if es.busy() {
+                "loading…"
+            } else {
+                "no field: File ▸ add one"
+            });
+        }
+    });
+}
+
+fn tools_panel(
+    ui: &mut egui::Ui,
+    state: &mut EditorState,
+    es: &mut EditorSession,
+    sel: Option<Entity>,
+    objects: &ObjectQuery,
+) {
+    ui.heading("Tools");
+    ui.horizontal(|ui| {
+        ui.selectable_value(&mut state.tool, Tool::Navigate, "Navigate");
+        ui.selectable_value(&mut state.tool, Tool::Brush, "Brush (B)");
+    });
+    ui.add(egui::Slider::new(&mut state.brush_radius, 0..=40).text("brush radius px"));
+    ui.checkbox(&mut state.negative, "negative strokes (or hold Ctrl)");
+    ui.separator();
+    ui.heading("Segmentation");
+    let p = &mut state.params;
+    let mut commit = false;
+    commit |= committed(&ui.add(egui::Slider::new(&mut p.k, 1..=64).text("K (clusters)")));
+    commit |= committed(&ui.add(egui::Slider::new(&mut p.theta, 0.01..=2.0).text("θ (NNFM)")));
+    commit |= committed(
+        &ui.add(
+            egui::Slider::new(&mut p.grow.sigma_f, 0.1..=50.0)
+                .logarithmic(true)
+                .text("σ_φ"),
+        ),
+    );
+    commit |= committed(
+        &ui.add(
+            egui::Slider::new(&mut p.grow.sigma_s, 0.1..=10.0)
+                .logarithmic(true)
+                .text("σ_s"),
+        ),
+    );
+    commit |= committed(&ui.add(egui::Slider::new(&mut p.grow.tau, 0.0..=0.99).text("τ")));
+    ui.checkbox(&mut state.live, "live: redo the last stroke with new values");
+    if commit && state.params != es.state.params {
+        let p = state.params;
+        let set = Command::SetParams {
+            k: Some(p.k),
+            theta: Some(p.theta),
+            sigma_f: Some(p.grow.sigma_f),
+            sigma_s: Some(p.grow.sigma_s),
+            tau: Some(p.grow.tau),
+            growth: None,
+        };
+        // Live re-segmentation: take back the last stroke, change the
+        // parameters, stroke again (all through the session, so undo works).
+        let last = es.session().and_then(|s| s.log().last().cloned());
+        match last.filter(|c| state.live && matches!(c, Command::Stroke { .. })) {
+            Some(stroke) => {
+                es.push(Request::Undo);
+                es.apply(set);
+                es.apply(stroke);
+            }
+            None => es.apply(set),
+        }
+    }
+    let object = sel.and_then(|e| objects.get(e).ok()).map(|o| o.1 .0.clone());
+    ui.horizontal(|ui| {
+        if ui
+            .add_enabled(object.is_some(), egui::Button::new("Grow one step (+)"))
+            .clicked()
+        {
+            es.apply(Command::Grow {
+                object: object.clone().unwrap(),
+                steps: Growth::Steps(1),
+            });
+        }
+        if ui
+            .add_enabled(object.is_some(), egui::Button::new("Grow to convergence"))
+            .clicked()
+        {
+            es.apply(Command::Grow {
+                object: object.clone().unwrap(),
+                steps: Growth::Converge,
+            });
+        }
+    });
+}
+
+fn selection_panel(
+    ui: &mut egui::Ui,
+    state: &mut EditorState,
+    es: &mut EditorSession,
+    e: Entity,
+    objects: &mut ObjectQuery,
+) {
+    let Ok((_, name, mut obj, mut t)) = objects.get_mut(e) else {
+        return;
+    };
+    let name = name.0.clone();
+    let Some(entry) = es.state.objects.iter().find(|o| o.name == name).cloned() else {
+        return;
+    };
+    ui.separator();
+    ui.heading("Object");
+    if state.rename.as_ref().map(|r| r.0) != Some(e) {
+        state.rename = Some((e, name.clone()));
+    }
+    let buf = &mut state.rename.as_mut().unwrap().1;
+    let r = ui.text_edit_singleline(buf);
+    if r.lost_focus() && buf.trim() != name && !buf.trim().is_empty() {
+        es.apply(Command::Rename {
+            target: name.clone(),
+            name: buf.trim().to_string(),
+        });
+    }
+    ui.label(format!("{} voxels", obj.bitmap.count()));
+    ui.label("Move (G), rotate (R), scale (S), or type:");
+    let mut tr = t.translation;
+    let (ry, rx, rz) = t.rotation.to_euler(EulerRot::YXZ);
+    let mut rot = Vec3::new(rx.to_degrees(), ry.to_degrees(), rz.to_degrees());
+    let mut s = t.scale.x;
+    let mut edited = false;
+    let mut commit = false;
+    ui.horizontal(|ui| {
+        ui.label("pos");
+        for v in [&mut tr.x, &mut tr.y, &mut tr.z] {
+            let r = ui.add(egui::DragValue::new(v).speed(0.01));
+            edited |= r.changed();
+            commit |= committed(&r);
+        }
+    });
+    ui.horizontal(|ui| {
+        ui.label("rot°");
+        for v in [&mut rot.x, &mut rot.y, &mut rot.z] {
+            let r = ui.add(egui::DragValue::new(v).speed(1.0));
+            edited |= r.changed();
+            commit |= committed(&r);
+        }
+    });
+    ui.horizontal(|ui| {
+        ui.label("scale");
+        let r = ui.add(egui::DragValue::new(&mut s).speed(0.01).range(0.05..=20.0));
+        edited |= r.changed();
+        commit |= committed(&r);
+    });
+    if edited {
+        *t = Transform {
+            translation: tr,
+            rotation: Quat::from_euler(
+                EulerRot::YXZ,
+                rot.y.to_radians(),
+                rot.x.to_radians(),
+                rot.z.to_radians(),
+            ),
+            scale: Vec3::splat(s),
+        };
+    }
+    if ui.button("Reset placement").clicked() {
+        *t = Transform::IDENTITY;
+        commit = true;
+    }
+    let placed = bevy_transform(&entry.transform);
+    if commit && *t != placed {
+        es.apply(transform_command(&name, &placed, &t));
+    }
+    ui.label("Appearance");
+    let mut c = obj.color_edit;
+    let mut commit = false;
+    ui.horizontal(|ui| {
+        ui.label("tint");
+        commit |= ui.color_edit_button_rgb(&mut c.tint).changed();
+    });
+    commit |= committed(&ui.add(egui::Slider::new(&mut c.hue, -180.0..=180.0).text("hue°")));
+    commit |= committed(&ui.add(egui::Slider::new(&mut c.saturation, 0.0..=3.0).text("saturation")));
+    commit |= committed(&ui.add(egui::Slider::new(&mut c.brightness, 0.0..=3.0).text("brightness")));
+    if ui.button("Reset appearance").clicked() {
+        c = Default::default();
+        commit = true;
+    }
+    if c != obj.color_edit {
+        obj.color_edit = c;
+    }
+    if commit && Some(c).filter(|e| !e.is_identity()) != entry.color_edit {
+        es.apply(Command::Appearance { object: name, edit: c });
+    }
+}
+
+fn view_panel(ui: &mut egui::Ui, state: &mut EditorState, snap: &mut Option<usize>) {
+    ui.separator();
+    ui.heading("View");
+    ui.checkbox(&mut state.overlay.tint_selected, "tint the selected object");
+    ui.checkbox(&mut state.overlay.dim_others, "dim the others");
+    ui.horizontal(|ui| {
+        ui.label("background");
+        ui.color_edit_button_rgb(&mut state.background);
+    });
+    ui.add(egui::Slider::new(&mut state.step_scale, 1.0..=4.0).text("step × (faster, coarser)"));
+    if !state.capture_cameras.is_empty() {
+        egui::ComboBox::from_label("capture view")
+            .selected_text("snap to…")
+            .show_ui(ui, |ui| {
+                for (i, (name, _)) in state.capture_cameras.iter().enumerate() {
+                    if ui.selectable_label(false, name).clicked() {
+                        *snap = Some(i);
+                    }
+                }
+            });
+    }
+}
+
+fn status_line(
+    ui: &mut egui::Ui,
+    state: &mut EditorState,
+    es: &EditorSession,
+    status: &SharedStatus,
+    diagnostics: Option<&DiagnosticsStore>,
+) {
+    let gpu = status.get();
+    ui.horizontal_wrapped(|ui| {
+        if let Some((label, secs)) = es.progress() {
+            ui.spinner();
+            ui.label(format!("{label} ({secs:.1} s)"));
+        }
+        ui.label(&state.status);
+        if let Some(t) = &state.last_timings {
+            ui.separator();
+            ui.label(format!(
+                "last stroke: features {:.0} ms · k-means {:.0} ms · NNFM {:.0} ms · growth {:.0} ms ({} steps) · total {:.0} ms",
+                t.stroke_features_ms,
+                t.kmeans_ms,
+                t.nnfm_ms,
+                t.grow_ms,
+                t.grow_steps,
+                t.total_ms()
+            ));
+        }
+        if let Some(fps) = diagnostics
+            .and_then(|d| d.get(&FrameTimeDiagnosticsPlugin::FPS))
+            .and_then(|d| d.smoothed())
+        {
+            ui.separator();
+            ui.label(format!("{fps:.1} fps"));
+        }
+        if gpu.uploads > 0 {
+            ui.separator();
+            ui.label(format!("GPU upload {:.0} ms", gpu.upload_ms));
+        }
+    });
+    if let Some(e) = &gpu.error {
+        ui.colored_label(egui::Color32::RED, format!("GPU view: {e}"));
+    }
+    let mut dismiss = None;
+    for (i, e) in state.errors.iter().enumerate() {
+        ui.horizontal(|ui| {
+            ui.colored_label(egui::Color32::RED, e);
+            if ui.small_button("dismiss").clicked() {
+                dismiss = Some(i);
+            }
+        });
+    }
+    if let Some(i) = dismiss {
+        state.errors.remove(i);
+    }
+}
+
+/// The stroke being painted, and the brush outline at the cursor.
+fn draw_stroke(ctx: &egui::Context, stroke: &CurrentStroke, state: &EditorState) {
+    if state.tool != Tool::Brush {
+        return;
+    }
+    let painter = ctx.layer_painter(egui::LayerId::new(egui::Order::Foreground, "isrf_stroke".into()));
+    let ppp = ctx.pixels_per_point();
+    let r = (state.brush_radius as f32 + 0.5) / ppp;
+    let color = if stroke.negative {
+        egui::Color32::from_rgb(230, 60, 60)
+    } else {
+        egui::Color32::from_rgb(60, 200, 90)
+    };
+    let pts: Vec<egui::Pos2> = stroke.screen.iter().map(|p| egui::pos2(p.x, p.y)).collect();
+    if pts.len() >= 2 {
+        painter.add(egui::Shape::line(
+            pts,
+            egui::Stroke::new(2.0 * r, color.gamma_multiply(0.6)),
+        ));
+    } else if let Some(p) = pts.first() {
+        painter.circle_filled(*p, r, color.gamma_multiply(0.6));
+    }
+    if let Some(p) = ctx.pointer_hover_pos() {
+        painter.circle_stroke(p, r, egui::Stroke::new(1.0, color));
+    }
+}

@@ -1,0 +1,524 @@
+//! The custom render pass: a WGSL ray marcher (`shaders/raymarch.wgsl`) that
+//! draws every layer of a [`Scene`] into each camera marked with
+//! [`RayMarchCamera`], before bevy's opaque pass, writing colour and depth so
+//! that meshes and gizmos drawn afterwards compose with the volume.
+//!
+//! Flow (as bevy's own render features): the main world holds a
+//! [`MarchScene`] resource (the library's `render::Scene`, shared with `Arc`s,
+//! so extraction copies pointers); `prepare_scene` packs and uploads each
+//! field's grids once (keyed by the field's `Arc` identity; see [`pack`] for
+//! the layout) and re-uploads only the mask bitmaps whose contents changed;
+//! `prepare_views` builds one bind group per view; `raymarch_pass` runs in
+//! the `Core3d` schedule.
+
+pub mod pack;
+
+use crate::field::{Bitmap, Field};
+use crate::render::Scene;
+use bevy::asset::{Assets, Handle};
+use bevy::core_pipeline::core_3d::main_opaque_pass_3d;
+use bevy::core_pipeline::{Core3d, Core3dSystems, FullscreenShader};
+use bevy::prelude::*;
+use bevy::render::camera::ExtractedCamera;
+use bevy::render::extract_component::{ExtractComponent, ExtractComponentPlugin};
+use bevy::render::extract_resource::{ExtractResource, ExtractResourcePlugin};
+use bevy::render::render_resource::binding_types::{storage_buffer_read_only_sized, uniform_buffer_sized};
+use bevy::render::render_resource::{
+    BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor,
+    BufferUsages, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction, DepthStencilState,
+    FragmentState, MultisampleState, PipelineCache, RenderPassDescriptor, RenderPipelineDescriptor, ShaderStages,
+    SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureFormat,
+};
+use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue, ViewQuery};
+use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
+use bevy::render::{Render, RenderApp, RenderStartup, RenderSystems};
+use bevy::shader::Shader;
+use pack::{GpuLayer, GpuView, Overlay, PackedField};
+use std::num::NonZero;
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+/// What the ray marcher draws (main world; extracted every frame).
+#[derive(Resource, Clone, Debug)]
+pub struct MarchScene {
+    pub scene: Option<Arc<Scene>>,
+    /// Editor overlay per layer (tint the selected object, dim others).
+    pub overlay: Vec<Overlay>,
+    /// World-space sample spacing; `None` = [`Scene::default_step`].
+    pub step: Option<f32>,
+    pub min_transmittance: f32,
+}
+
+impl Default for MarchScene {
+    fn default() -> Self {
+        MarchScene {
+            scene: None,
+            overlay: Vec::new(),
+            step: None,
+            min_transmittance: 1e-4,
+        }
+    }
+}
+
+impl ExtractResource for MarchScene {
+    type Source = MarchScene;
+    fn extract_resource(source: &Self::Source) -> Self {
+        source.clone()
+    }
+}
+
+/// Marks a camera that draws the ray-marched scene. `intrinsics`
+/// (fx, fy, cx, cy in pixels) overrides the ones derived from the camera's
+/// perspective projection, e.g. to match an `isrf` camera exactly.
+#[derive(Component, Clone, Copy, Debug, Default, ExtractComponent)]
+pub struct RayMarchCamera {
+    pub intrinsics: Option<[f32; 4]>,
+}
+
+/// Shared between the worlds: what the render world did last.
+#[derive(Clone, Debug, Default)]
+pub struct RenderStatus {
+    /// Frames in which the pass drew (pipeline compiled, scene uploaded).
+    pub frames_drawn: u64,
+    /// Pointer identity of the scene the last drawn frame showed.
+    pub scene_drawn: usize,
+    /// Last upload or packing error (shown in the UI).
+    pub error: Option<String>,
+    /// Milliseconds spent uploading grids, last time any were uploaded.
+    pub upload_ms: f64,
+    pub uploads: u64,
+    /// Bitmaps re-uploaded in total (counting only changed ones).
+    pub bitmap_uploads: u64,
+}
+
+#[derive(Resource, Clone, Default)]
+pub struct SharedStatus(pub Arc<Mutex<RenderStatus>>);
+
+impl SharedStatus {
+    pub fn get(&self) -> RenderStatus {
+        self.0.lock().map(|s| s.clone()).unwrap_or_default()
+    }
+    fn update(&self, f: impl FnOnce(&mut RenderStatus)) {
+        if let Ok(mut s) = self.0.lock() {
+            f(&mut s);
+        }
+    }
+}
+
+pub struct RayMarchPlugin;
+
+impl Plugin for RayMarchPlugin {
+    fn build(&self, app: &mut App) {
+        let shader = app.world_mut().resource_mut::<Assets<Shader>>().add(Shader::from_wgsl(
+            include_str!("../../../shaders/raymarch.wgsl"),
+            "shaders/raymarch.wgsl",
+        ));
+        let status = SharedStatus::default();
+        app.init_resource::<MarchScene>()
+            .insert_resource(status.clone())
+            .add_plugins((
+                ExtractResourcePlugin::<MarchScene>::default(),
+                ExtractComponentPlugin::<RayMarchCamera>::default(),
+            ));
+        let Some(render_app) = app.get_sub_app_mut(RenderApp) else {
+            return;
+        };
+        render_app
+            .insert_resource(RayMarchShader(shader))
+            .insert_resource(status)
+            .init_resource::<GpuSceneCache>()
+            .init_resource::<SpecializedRenderPipelines<RayMarchPipeline>>()
+            .add_systems(RenderStartup, init_pipeline)
+            .add_systems(
+                Render,
+                (
+                    prepare_scene.in_set(RenderSystems::PrepareResources),
+                    prepare_views.in_set(RenderSystems::PrepareBindGroups),
+                ),
+            )
+            .add_systems(
+                Core3d,
+                raymarch_pass
+                    .in_set(Core3dSystems::MainPass)
+                    .before(main_opaque_pass_3d),
+            );
+    }
+}
+
+#[derive(Resource)]
+struct RayMarchShader(Handle<Shader>);
+
+#[derive(Resource)]
+struct RayMarchPipeline {
+    layout: BindGroupLayoutDescriptor,
+    shader: Handle<Shader>,
+    fullscreen: FullscreenShader,
+}
+
+fn init_pipeline(mut commands: Commands, shader: Res<RayMarchShader>, fullscreen: Res<FullscreenShader>) {
+    let storage = || storage_buffer_read_only_sized(false, None);
+    let layout = BindGroupLayoutDescriptor::new(
+        "isrf_raymarch_layout",
+        &BindGroupLayoutEntries::sequential(
+            ShaderStages::FRAGMENT,
+            (
+                uniform_buffer_sized(false, NonZero::new(size_of::<GpuView>() as u64)),
+                storage(),
+                storage(),
+                storage(),
+                storage(),
+                storage(),
+                storage(),
+            ),
+        ),
+    );
+    commands.insert_resource(RayMarchPipeline {
+        layout,
+        shader: shader.0.clone(),
+        fullscreen: fullscreen.clone(),
+    });
+}
+
+impl SpecializedRenderPipeline for RayMarchPipeline {
+    /// Target format and MSAA samples.
+    type Key = (TextureFormat, u32);
+    fn specialize(&self, (format, samples): Self::Key) -> RenderPipelineDescriptor {
+        RenderPipelineDescriptor {
+            label: Some("isrf_raymarch_pipeline".into()),
+            layout: vec![self.layout.clone()],
+            vertex: self.fullscreen.to_vertex_state(),
+            fragment: Some(FragmentState {
+                shader: self.shader.clone(),
+                entry_point: Some("fragment".into()),
+                targets: vec![Some(ColorTargetState {
+                    format,
+                    blend: None,
+                    write_mask: ColorWrites::ALL,
+                })],
+                ..default()
+            }),
+            depth_stencil: Some(DepthStencilState {
+                format: bevy::core_pipeline::core_3d::CORE_3D_DEPTH_FORMAT,
+                depth_write_enabled: Some(true),
+                depth_compare: Some(CompareFunction::Always),
+                stencil: default(),
+                bias: default(),
+            }),
+            multisample: MultisampleState {
+                count: samples,
+                ..default()
+            },
+            ..default()
+        }
+    }
+}
+
+struct FieldSlot {
+    field: Arc<Field>,
+    packed: PackedField,
+}
+
+/// Render-world GPU copies of the scene's grids, reused across frames.
+#[derive(Resource, Default)]
+struct GpuSceneCache {
+    fields: Vec<FieldSlot>,
+    bitmaps: Vec<Arc<Bitmap>>,
+    bitmap_words: usize,
+    bitmap_buffer: Option<Buffer>,
+    field_buffer: Option<Buffer>,
+    aux_buffer: Option<Buffer>,
+    density_buffer: Option<Buffer>,
+    color_buffer: Option<Buffer>,
+    layer_buffer: Option<Buffer>,
+    layers: Vec<GpuLayer>,
+    step: f32,
+    background: [f32; 4],
+    min_transmittance: f32,
+    scene_ptr: usize,
+    ready: bool,
+}
+
+/// A storage buffer holding `data` (padded to 16 bytes: empty bindings are
+/// not allowed).
+fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> Buffer {
+    let mut bytes = data.to_vec();
+    bytes.resize(bytes.len().max(16).next_multiple_of(16), 0);
+    device.create_buffer_with_data(&BufferInitDescriptor {
+        label: Some(label),
+        contents: &bytes,
+        usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
+    })
+}
+
+fn prepare_scene(
+    march: Option<Res<MarchScene>>,
+    mut cache: ResMut<GpuSceneCache>,
+    device: Res<RenderDevice>,
+    queue: Res<RenderQueue>,
+    status: Res<SharedStatus>,
+) {
+    cache.ready = false;
+    let Some(march) = march else { return };
+    let Some(scene) = march.scene.clone() else {
+        return;
+    };
+    if let Err(e) = update_cache(&mut cache, &march, &scene, &device, &queue, &status) {
+        status.update(|s| s.error = Some(e.to_string()));
+        return;
+    }
+    cache.ready = true;
+}
+
+/// Packs and uploads the fields when the set of fields changes.
+fn update_fields(
+    cache: &mut GpuSceneCache,
+    wanted: &[Arc<Field>],
+    device: &RenderDevice,
+    status: &SharedStatus,
+) -> crate::Result<()> {
+    let same = wanted.len() == cache.fields.len()
+        && wanted.iter().zip(&cache.fields).all(|(a, b)| Arc::ptr_eq(a, &b.field));
+    if same {
+        return Ok(());
+    }
+    let t0 = Instant::now();
+    let mut old = std::mem::take(&mut cache.fields);
+    let mut packed = 0;
+    for f in wanted {
+        match old.iter().position(|s| Arc::ptr_eq(&s.field, f)) {
+            Some(i) => cache.fields.push(old.swap_remove(i)),
+            None => {
+                cache.fields.push(FieldSlot {
+                    field: f.clone(),
+                    packed: pack::pack_field(f)?,
+                });
+                packed += 1;
+            }
+        }
+    }
+    let parts: Vec<&PackedField> = cache.fields.iter().map(|s| &s.packed).collect();
+    let (infos, density, colors, aux) = pack::concat_fields(&parts);
+    crate::ensure!(
+        density.len() < u32::MAX as usize && aux.len() < u32::MAX as usize,
+        "the fields are too large for the GPU view"
+    );
+    cache.field_buffer = Some(storage_buffer(device, "isrf_fields", bytemuck::cast_slice(&infos)));
+    cache.aux_buffer = Some(storage_buffer(device, "isrf_aux", bytemuck::cast_slice(&aux)));
+    cache.density_buffer = Some(storage_buffer(device, "isrf_density", bytemuck::cast_slice(&density)));
+    cache.color_buffer = Some(storage_buffer(device, "isrf_colors", bytemuck::cast_slice(&colors)));
+    let ms = t0.elapsed().as_secs_f64() * 1e3;
+    status.update(|s| {
+        s.upload_ms = ms;
+        s.uploads += packed;
+    });
+    Ok(())
+}
+
+/// Uploads mask bitmaps: only those whose contents changed when the layout
+/// (sizes in order) is unchanged; the whole buffer otherwise.
+fn update_bitmaps(
+    cache: &mut GpuSceneCache,
+    bitmaps: Vec<Arc<Bitmap>>,
+    offs: &[u32],
+    total: usize,
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    status: &SharedStatus,
+) {
+    let same_layout = cache.bitmap_buffer.is_some()
+        && total == cache.bitmap_words
+        && bitmaps.len() == cache.bitmaps.len()
+        && bitmaps.iter().zip(&cache.bitmaps).all(|(a, b)| a.len() == b.len());
+    if same_layout {
+        let mut n = 0;
+        for (k, b) in bitmaps.iter().enumerate() {
+            // A new Arc with the same bits (a scene rebuilt during a drag)
+            // needs no upload.
+            if !Arc::ptr_eq(b, &cache.bitmaps[k]) && **b != *cache.bitmaps[k] {
+                let words = pack::bitmap_u32(b);
+                queue.write_buffer(
+                    cache.bitmap_buffer.as_ref().unwrap(),
+                    offs[k] as u64 * 4,
+                    bytemuck::cast_slice(&words),
+                );
+                n += 1;
+            }
+        }
+        if n > 0 {
+            status.update(|s| s.bitmap_uploads += n);
+        }
+    } else {
+        let mut words = Vec::with_capacity(total);
+        for b in &bitmaps {
+            words.extend(pack::bitmap_u32(b));
+        }
+        cache.bitmap_buffer = Some(storage_buffer(device, "isrf_bitmaps", bytemuck::cast_slice(&words)));
+        cache.bitmap_words = total;
+        let n = bitmaps.len() as u64;
+        status.update(|s| s.bitmap_uploads += n);
+    }
+    cache.bitmaps = bitmaps;
+}
+
+fn update_cache(
+    cache: &mut GpuSceneCache,
+    march: &MarchScene,
+    scene: &Arc<Scene>,
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    status: &SharedStatus,
+) -> crate::Result<()> {
+    let wanted = pack::distinct_fields(scene);
+    update_fields(cache, &wanted, device, status)?;
+    let bitmaps = pack::distinct_bitmaps(scene);
+    let (offs, total) = pack::bitmap_offsets(&bitmaps);
+    update_bitmaps(cache, bitmaps, &offs, total, device, queue, status);
+    // Layers: small, repacked every frame.
+    let layers = pack::pack_layers(scene, &wanted, &cache.bitmaps, &offs, &march.overlay)?;
+    let bytes: &[u8] = bytemuck::cast_slice(&layers);
+    let fits = cache
+        .layer_buffer
+        .as_ref()
+        .is_some_and(|b| b.size() as usize >= bytes.len().max(16));
+    if fits && !bytes.is_empty() {
+        queue.write_buffer(cache.layer_buffer.as_ref().unwrap(), 0, bytes);
+    } else if !fits {
+        cache.layer_buffer = Some(storage_buffer(device, "isrf_layers", bytes));
+    }
+    cache.layers = layers;
+    let step = march.step.unwrap_or_else(|| scene.default_step());
+    crate::ensure!(
+        step.is_finite() && step > 0.0,
+        "render step must be positive, got {step}"
+    );
+    cache.step = step;
+    let bg = scene.background;
+    cache.background = [bg.x, bg.y, bg.z, 1.0];
+    cache.min_transmittance = march.min_transmittance;
+    cache.scene_ptr = Arc::as_ptr(scene) as usize;
+    status.update(|s| s.error = None);
+    Ok(())
+}
+
+#[derive(Component)]
+struct RayMarchViewBindGroup(BindGroup);
+
+#[derive(Component)]
+struct RayMarchPipelineId(CachedRenderPipelineId);
+
+/// Intrinsics (fx, fy, cx, cy) of a perspective view from its projection:
+/// bevy's infinite reverse-z perspective has `[0][0] = f/aspect`,
+/// `[1][1] = f` with f = 1/tan(fov_y/2); the principal point is the centre.
+fn view_intrinsics(view: &ExtractedView) -> [f32; 4] {
+    let p = view.clip_from_view.to_cols_array_2d();
+    let (w, h) = (view.viewport.z as f32, view.viewport.w as f32);
+    [p[0][0] * 0.5 * w, p[1][1] * 0.5 * h, 0.5 * w, 0.5 * h]
+}
+
+#[allow(clippy::too_many_arguments)]
+fn prepare_views(
+    mut commands: Commands,
+    views: Query<(Entity, &ExtractedView, &RayMarchCamera, Option<&Msaa>)>,
+    cache: Res<GpuSceneCache>,
+    pipeline: Option<Res<RayMarchPipeline>>,
+    mut pipelines: ResMut<SpecializedRenderPipelines<RayMarchPipeline>>,
+    pipeline_cache: Res<PipelineCache>,
+    device: Res<RenderDevice>,
+) {
+    let Some(pipeline) = pipeline else { return };
+    for (entity, view, cam, msaa) in &views {
+        if !cache.ready {
+            commands.entity(entity).remove::<RayMarchViewBindGroup>();
+            continue;
+        }
+        let samples = msaa.map_or(1, |m| m.samples());
+        let id = pipelines.specialize(&pipeline_cache, &pipeline, (view.target_format, samples));
+        let world_from_view = view.world_from_view.to_matrix();
+        let clip_from_world = view
+            .clip_from_world
+            .unwrap_or(view.clip_from_view * world_from_view.inverse());
+        let gv = GpuView {
+            c2w: world_from_view.to_cols_array_2d(),
+            clip_from_world: clip_from_world.to_cols_array_2d(),
+            intrinsics: cam.intrinsics.unwrap_or_else(|| view_intrinsics(view)),
+            background: cache.background,
+            march: [
+                cache.step,
+                cache.min_transmittance,
+                view.viewport.x as f32,
+                view.viewport.y as f32,
+            ],
+            counts: [cache.layers.len() as u32, 0, 0, 0],
+        };
+        let uniform = device.create_buffer_with_data(&BufferInitDescriptor {
+            label: Some("isrf_view"),
+            contents: bytemuck::bytes_of(&gv),
+            usage: BufferUsages::UNIFORM,
+        });
+        let (Some(layers), Some(fields), Some(aux), Some(bitmaps), Some(density), Some(colors)) = (
+            &cache.layer_buffer,
+            &cache.field_buffer,
+            &cache.aux_buffer,
+            &cache.bitmap_buffer,
+            &cache.density_buffer,
+            &cache.color_buffer,
+        ) else {
+            continue;
+        };
+        let bind_group = device.create_bind_group(
+            "isrf_raymarch_bind_group",
+            &pipeline_cache.get_bind_group_layout(&pipeline.layout),
+            &BindGroupEntries::sequential((
+                uniform.as_entire_binding(),
+                layers.as_entire_binding(),
+                fields.as_entire_binding(),
+                aux.as_entire_binding(),
+                bitmaps.as_entire_binding(),
+                density.as_entire_binding(),
+                colors.as_entire_binding(),
+            )),
+        );
+        commands
+            .entity(entity)
+            .insert((RayMarchViewBindGroup(bind_group), RayMarchPipelineId(id)));
+    }
+}
+
+fn raymarch_pass(
+    view: ViewQuery<(
+        &ExtractedCamera,
+        &ViewTarget,
+        &ViewDepthTexture,
+        &RayMarchViewBindGroup,
+        &RayMarchPipelineId,
+    )>,
+    pipeline_cache: Res<PipelineCache>,
+    cache: Res<GpuSceneCache>,
+    status: Res<SharedStatus>,
+    mut ctx: RenderContext,
+) {
+    let (camera, target, depth, bind_group, pipeline_id) = view.into_inner();
+    let Some(pipeline) = pipeline_cache.get_render_pipeline(pipeline_id.0) else {
+        return;
+    };
+    let color_attachments = [Some(target.get_color_attachment())];
+    let mut pass = ctx.begin_tracked_render_pass(RenderPassDescriptor {
+        label: Some("isrf_raymarch_pass"),
+        color_attachments: &color_attachments,
+        depth_stencil_attachment: Some(depth.get_attachment(StoreOp::Store)),
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    });
+    if let Some(viewport) = camera.viewport.as_ref() {
+        pass.set_camera_viewport(viewport);
+    }
+    pass.set_render_pipeline(pipeline);
+    pass.set_bind_group(0, &bind_group.0, &[]);
+    pass.draw(0..3, 0..1);
+    let ptr = cache.scene_ptr;
+    status.update(|s| {
+        s.frames_drawn += 1;
+        s.scene_drawn = ptr;
+    });
+}

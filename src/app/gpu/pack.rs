@@ -1,0 +1,560 @@
+//! CPU-side packing of a [`Scene`] into the flat arrays and `#[repr(C)]`
+//! structs that `shaders/raymarch.wgsl` reads. Plain functions over plain
+//! data (no bevy types), so they are unit-tested without a GPU.
+//!
+//! Layout contract with the shader (every struct is made of 16-byte vectors
+//! so that WGSL's uniform/storage layout rules equal `#[repr(C)]`); all
+//! fields' arrays are concatenated, and [`GpuField::offsets`] say where each
+//! field's part starts:
+//! - `density` (`array<f32>`): raw density per grid point, x fastest;
+//! - `colors` (`array<vec2<u32>>`): RGBA as four f16 per stored grid point
+//!   (every point for dense appearance, the occupied ones in rank order for
+//!   sparse appearance, exactly like `ChannelGrid`);
+//! - `aux` (`array<u32>`): per field the empty-space grid (one byte per
+//!   skip cell, see [`skip_grid`]) and, for sparse appearance, the rank
+//!   index: the occupancy bits as little-endian u32 pairs of the u64 words,
+//!   then the prefix count of every u64 word;
+//! - `bitmaps` (`array<u32>`): the packed words of every mask (bit `i` is bit
+//!   `i & 31` of word `offset + i >> 5`).
+
+use crate::field::macro_grid::EMPTY_SIGMA;
+use crate::field::{Activation, Appearance, Bitmap, ChannelGrid, DensityGrid, Field, Layout};
+use crate::render::{Mask, Scene};
+use crate::{ensure, Result};
+use bytemuck::{Pod, Zeroable};
+use glam::{Affine3A, Mat4, Vec3};
+use rayon::prelude::*;
+use std::sync::Arc;
+
+/// Layers one frame can draw (the shader's per-ray scratch size).
+pub const MAX_LAYERS: usize = 16;
+/// Grid cells per skip cell along each axis (a skip cell covers grid
+/// points `[c·SKIP_BLOCK, c·SKIP_BLOCK + SKIP_BLOCK]`).
+pub const SKIP_BLOCK: usize = 2;
+/// Largest empty radius stored (in skip cells).
+pub const SKIP_MAX: u8 = 31;
+
+/// Layer flags (`GpuLayer::info[3]`).
+pub const LAYER_COLOR_EDIT: u32 = 1;
+/// Editor overlay: tint this layer (the selected object).
+pub const LAYER_HIGHLIGHT: u32 = 2;
+/// Editor overlay: dim this layer.
+pub const LAYER_DIM: u32 = 4;
+
+pub const MASK_ALL: u32 = 0;
+pub const MASK_KEEP: u32 = 1;
+pub const MASK_REMOVE: u32 = 2;
+
+/// Per-view parameters (uniform).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct GpuView {
+    /// Camera-to-world (OpenGL convention), column-major.
+    pub c2w: [[f32; 4]; 4],
+    /// World to clip space of the bevy camera (for the depth we write).
+    pub clip_from_world: [[f32; 4]; 4],
+    /// fx, fy, cx, cy in pixels of the view.
+    pub intrinsics: [f32; 4],
+    /// Background colour (rgb).
+    pub background: [f32; 4],
+    /// step, min transmittance, viewport x offset, viewport y offset.
+    pub march: [f32; 4],
+    /// layer count, 0, 0, 0.
+    pub counts: [u32; 4],
+}
+
+/// One layer (storage buffer, array).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct GpuLayer {
+    /// World to field-local, column-major.
+    pub to_local: [[f32; 4]; 4],
+    /// field index, mask kind, mask word offset, flags.
+    pub info: [u32; 4],
+    /// tint rgb, hue (degrees).
+    pub tint_hue: [f32; 4],
+    /// saturation, brightness, 0, 0.
+    pub sat_bright: [f32; 4],
+    /// Local box outside which the layer has no density (the field's box,
+    /// or a keep-mask's bounding box grown by a voxel).
+    pub box_min: [f32; 4],
+    pub box_max: [f32; 4],
+}
+
+/// One field (storage buffer, array).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct GpuField {
+    /// xyz; w = activation shift.
+    pub bounds_min: [f32; 4],
+    /// xyz; w = activation kind (0 relu, 1 softplus).
+    pub bounds_max: [f32; 4],
+    /// nx, ny, nz, 1 if the colours are sparse.
+    pub res: [u32; 4],
+    /// Offsets: density (f32), colours (vec2), rank bits (aux u32), rank
+    /// prefix (aux u32).
+    pub offsets: [u32; 4],
+    /// Skip grid dims xyz, offset (aux u32).
+    pub skip: [u32; 4],
+    /// World size of a skip cell, xyz.
+    pub skip_cell: [f32; 4],
+}
+
+/// A field's grids in upload form (offsets relative to its own arrays).
+#[derive(Clone, Debug)]
+pub struct PackedField {
+    pub density: Vec<f32>,
+    /// RGBA f16 per stored grid point.
+    pub colors: Vec<[u32; 2]>,
+    /// Skip grid bytes packed four per u32, then rank bits, then prefixes.
+    pub aux: Vec<u32>,
+    pub info: GpuField,
+}
+
+fn v4(v: Vec3, w: f32) -> [f32; 4] {
+    [v.x, v.y, v.z, w]
+}
+
+pub fn affine_cols(a: &Affine3A) -> [[f32; 4]; 4] {
+    Mat4::from(*a).to_cols_array_2d()
+}
+
+/// Empty-space grid: per skip cell, 0 if any of its grid points has
+/// σ > [`EMPTY_SIGMA`] (so interpolated σ inside may exceed it), else the
+/// Chebyshev distance in cells to the nearest such cell (capped at
+/// [`SKIP_MAX`]): every cell within distance − 1 is empty too, so a ray can
+/// jump out of that whole cube.
+pub fn skip_grid(d: &DensityGrid) -> ([usize; 3], Vec<u8>) {
+    let g = d.geom;
+    let dims = g.res.map(|n| (n - 1).div_ceil(SKIP_BLOCK).max(1));
+    let occupied: Vec<bool> = (0..dims[0] * dims[1] * dims[2])
+        .into_par_iter()
+        .map(|c| {
+            let (cx, cy, cz) = (c % dims[0], (c / dims[0]) % dims[1], c / (dims[0] * dims[1]));
+            let range = |cc: usize, a: usize| cc * SKIP_BLOCK..=((cc + 1) * SKIP_BLOCK).min(g.res[a] - 1);
+            range(cz, 2).any(|z| range(cy, 1).any(|y| range(cx, 0).any(|x| d.sigma_at(g.index(x, y, z)) > EMPTY_SIGMA)))
+        })
+        .collect();
+    (dims, chebyshev(&occupied, dims))
+}
+
+/// Chebyshev distance (capped at [`SKIP_MAX`]) from every cell to the
+/// nearest occupied cell, by repeated 26-neighbour dilation done as three
+/// separable 1D min passes per step.
+fn chebyshev(occ: &[bool], dims: [usize; 3]) -> Vec<u8> {
+    let mut dist: Vec<u8> = occ.iter().map(|&o| if o { 0 } else { SKIP_MAX }).collect();
+    let mut front: Vec<bool> = occ.to_vec();
+    for k in 1..SKIP_MAX {
+        // front ← cells within L∞ distance 1 of the front (cube dilation).
+        for axis in 0..3 {
+            let stride = [1, dims[0], dims[0] * dims[1]][axis];
+            let prev = front.clone();
+            front.par_iter_mut().enumerate().for_each(|(c, f)| {
+                if *f {
+                    return;
+                }
+                let coord = [c % dims[0], (c / dims[0]) % dims[1], c / (dims[0] * dims[1])][axis];
+                *f = (coord > 0 && prev[c - stride]) || (coord + 1 < dims[axis] && prev[c + stride]);
+            });
+        }
+        let mut any_new = false;
+        for (d, &f) in dist.iter_mut().zip(&front) {
+            if f && *d == SKIP_MAX {
+                *d = k;
+                any_new = true;
+            }
+        }
+        if !any_new {
+            break;
+        }
+    }
+    dist
+}
+
+/// f16 RGBA of `n` slots of a channel grid (first three channels, a = 1).
+fn colors_of(g: &ChannelGrid, slots: usize) -> Vec<[u32; 2]> {
+    let ch = g.channels;
+    (0..slots)
+        .into_par_iter()
+        .map(|s| {
+            let c = &g.data[s * ch..s * ch + 3];
+            let one = half::f16::ONE.to_bits() as u32;
+            [
+                c[0].to_bits() as u32 | (c[1].to_bits() as u32) << 16,
+                c[2].to_bits() as u32 | one << 16,
+            ]
+        })
+        .collect()
+}
+
+/// Packs a field for upload. Only view-independent RGB appearance renders
+/// exactly; other kinds are rejected with a message naming them.
+pub fn pack_field(field: &Field) -> Result<PackedField> {
+    let geom = field.geom();
+    let n = geom.len();
+    let g = match &field.appearance {
+        Appearance::Rgb(g) => g,
+        Appearance::Sh2(_) => {
+            return Err(crate::Error::invalid(
+                "the GPU view does not render spherical-harmonics appearance yet (use the CPU renderer)",
+            ))
+        }
+        Appearance::Vm { .. } => {
+            return Err(crate::Error::invalid(
+                "the GPU view does not render VM+MLP appearance yet (use the CPU renderer)",
+            ))
+        }
+    };
+    ensure!(g.channels >= 3, "RGB appearance with {} channels", g.channels);
+    let (dims, skip) = skip_grid(&field.density);
+    let mut aux: Vec<u32> = skip
+        .chunks(4)
+        .map(|c| c.iter().enumerate().fold(0u32, |a, (i, &b)| a | (b as u32) << (8 * i)))
+        .collect();
+    let (colors, sparse, bits_off, prefix_off) = match &g.layout {
+        Layout::Dense => (colors_of(g, n), false, 0, 0),
+        Layout::Sparse(ix) => {
+            let words = ix.bits().words();
+            let bits_off = aux.len() as u32;
+            aux.extend(words.iter().flat_map(|&w| [w as u32, (w >> 32) as u32]));
+            let prefix_off = aux.len() as u32;
+            let mut acc = 0u32;
+            for &w in words {
+                aux.push(acc);
+                acc += w.count_ones();
+            }
+            (colors_of(g, ix.count()), true, bits_off, prefix_off)
+        }
+    };
+    let (kind, shift) = match field.density.activation {
+        Activation::Relu => (0.0, 0.0),
+        Activation::Softplus { shift } => (1.0, shift),
+    };
+    let b = geom.bounds;
+    let cell = geom.spacing() * SKIP_BLOCK as f32;
+    Ok(PackedField {
+        density: field.density.raw.clone(),
+        colors,
+        aux,
+        info: GpuField {
+            bounds_min: v4(b.min, shift),
+            bounds_max: v4(b.max, kind),
+            res: [geom.res[0] as u32, geom.res[1] as u32, geom.res[2] as u32, sparse as u32],
+            offsets: [0, 0, bits_off, prefix_off],
+            skip: [dims[0] as u32, dims[1] as u32, dims[2] as u32, 0],
+            skip_cell: v4(cell, 0.0),
+        },
+    })
+}
+
+/// Concatenates packed fields; returns the field infos with absolute offsets.
+pub fn concat_fields(fields: &[&PackedField]) -> (Vec<GpuField>, Vec<f32>, Vec<[u32; 2]>, Vec<u32>) {
+    let mut infos = Vec::new();
+    let (mut density, mut colors, mut aux) = (Vec::new(), Vec::new(), Vec::new());
+    for p in fields {
+        let mut info = p.info;
+        let a = aux.len() as u32;
+        info.offsets = [
+            density.len() as u32,
+            colors.len() as u32,
+            info.offsets[2] + a,
+            info.offsets[3] + a,
+        ];
+        info.skip[3] = a;
+        density.extend_from_slice(&p.density);
+        colors.extend_from_slice(&p.colors);
+        aux.extend_from_slice(&p.aux);
+        infos.push(info);
+    }
+    (infos, density, colors, aux)
+}
+
+/// The local box outside which a keep-masked layer is empty: the mask's
+/// voxel bounding box grown by one voxel (trilinear weights reach that far),
+/// or `None` for an empty mask.
+pub fn keep_box(field: &Field, bits: &Bitmap) -> Option<(Vec3, Vec3)> {
+    let (lo, hi) = bits.bounding_box()?;
+    let g = field.geom();
+    let lo = lo.map(|v| v.saturating_sub(1));
+    let hi = [0, 1, 2].map(|a| (hi[a] + 1).min(g.res[a] - 1));
+    Some((g.point(lo[0], lo[1], lo[2]), g.point(hi[0], hi[1], hi[2])))
+}
+
+/// Distinct fields of a scene, in order of first use.
+pub fn distinct_fields(scene: &Scene) -> Vec<Arc<Field>> {
+    let mut out: Vec<Arc<Field>> = Vec::new();
+    for l in &scene.layers {
+        if !out.iter().any(|f| Arc::ptr_eq(f, &l.field)) {
+            out.push(l.field.clone());
+        }
+    }
+    out
+}
+
+/// Distinct mask bitmaps of a scene, in order of first use.
+pub fn distinct_bitmaps(scene: &Scene) -> Vec<Arc<Bitmap>> {
+    let mut out: Vec<Arc<Bitmap>> = Vec::new();
+    for l in &scene.layers {
+        if let Mask::Keep(b) | Mask::Remove(b) = &l.mask {
+            if !out.iter().any(|x| Arc::ptr_eq(x, b)) {
+                out.push(b.clone());
+            }
+        }
+    }
+    out
+}
+
+/// Word offsets (u32 units) of each bitmap in the concatenated buffer, and
+/// the total word count.
+pub fn bitmap_offsets(bitmaps: &[Arc<Bitmap>]) -> (Vec<u32>, usize) {
+    let mut offs = Vec::with_capacity(bitmaps.len());
+    let mut total = 0usize;
+    for b in bitmaps {
+        offs.push(total as u32);
+        total += b.words().len() * 2;
+    }
+    (offs, total)
+}
+
+/// The bitmap's words as little-endian u32 pairs.
+pub fn bitmap_u32(b: &Bitmap) -> Vec<u32> {
+    b.words().iter().flat_map(|&w| [w as u32, (w >> 32) as u32]).collect()
+}
+
+/// Editor overlay per layer.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Overlay {
+    pub highlight: bool,
+    pub dim: bool,
+}
+
+/// Packs the layers: `fields` and `bitmaps` are the lists from
+/// [`distinct_fields`] / [`distinct_bitmaps`], `bitmap_offs` their word
+/// offsets. Layers whose keep mask is empty are left out (they draw
+/// nothing).
+pub fn pack_layers(
+    scene: &Scene,
+    fields: &[Arc<Field>],
+    bitmaps: &[Arc<Bitmap>],
+    bitmap_offs: &[u32],
+    overlay: &[Overlay],
+) -> Result<Vec<GpuLayer>> {
+    let mut out = Vec::with_capacity(scene.layers.len());
+    for (i, l) in scene.layers.iter().enumerate() {
+        let det = l.to_world.matrix3.determinant();
+        ensure!(
+            det.is_finite() && det.abs() > 1e-12,
+            "layer {i}: its transform is not invertible"
+        );
+        let slot = fields
+            .iter()
+            .position(|f| Arc::ptr_eq(f, &l.field))
+            .ok_or_else(|| crate::Error::invalid(format!("layer {i}: its field was not uploaded")))?;
+        let b = l.field.bounds();
+        let (mut lo, mut hi) = (b.min, b.max);
+        let (kind, offset) = match &l.mask {
+            Mask::All => (MASK_ALL, 0),
+            Mask::Keep(bits) | Mask::Remove(bits) => {
+                ensure!(
+                    bits.res() == l.field.res(),
+                    "layer {i}: mask resolution {:?} differs from the field's {:?}",
+                    bits.res(),
+                    l.field.res()
+                );
+                let k = bitmaps.iter().position(|x| Arc::ptr_eq(x, bits)).unwrap_or(0);
+                if matches!(l.mask, Mask::Keep(_)) {
+                    let Some((a, z)) = keep_box(&l.field, bits) else { continue };
+                    (lo, hi) = (a, z);
+                    (MASK_KEEP, bitmap_offs[k])
+                } else {
+                    (MASK_REMOVE, bitmap_offs[k])
+                }
+            }
+        };
+        let edit = l.color_edit.filter(|e| !e.is_identity());
+        if let Some(e) = &edit {
+            e.validate()?;
+        }
+        let e = edit.unwrap_or_default();
+        let ov = overlay.get(i).copied().unwrap_or_default();
+        let flags = (edit.is_some() as u32) * LAYER_COLOR_EDIT
+            | (ov.highlight as u32) * LAYER_HIGHLIGHT
+            | (ov.dim as u32) * LAYER_DIM;
+        out.push(GpuLayer {
+            to_local: affine_cols(&l.to_world.inverse()),
+            info: [slot as u32, kind, offset, flags],
+            tint_hue: [e.tint[0], e.tint[1], e.tint[2], e.hue],
+            sat_bright: [e.saturation, e.brightness, 0.0, 0.0],
+            box_min: v4(lo, 0.0),
+            box_max: v4(hi, 0.0),
+        });
+    }
+    ensure!(
+        out.len() <= MAX_LAYERS,
+        "the GPU view draws at most {MAX_LAYERS} layers at once, this scene has {}",
+        out.len()
+    );
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::{Aabb, FieldBuilder, GridGeom, RankIndex};
+    use crate::render::Layer;
+    use half::f16;
+
+    fn ball() -> Field {
+        FieldBuilder::new(Aabb::new(Vec3::splat(-1.0), Vec3::ONE), [17, 17, 17]).build(
+            |p| if p.length() < 0.3 { 5.0 } else { -1.0 },
+            |p| p * 0.5 + 0.5,
+            None,
+        )
+    }
+
+    #[test]
+    fn skip_grid_holds_chebyshev_distances_to_density() {
+        let f = ball();
+        let (dims, d) = skip_grid(&f.density);
+        assert_eq!(dims, [8, 8, 8]);
+        let at = |x: usize, y: usize, z: usize| d[x + 8 * (y + 8 * z)];
+        // The ball (radius 0.3 = 2.4 voxels) sits around grid point 8 =
+        // the corner shared by cells 3 and 4.
+        assert_eq!(at(3, 3, 3), 0);
+        assert_eq!(at(4, 4, 4), 0);
+        // Brute force check of every cell.
+        let occ: Vec<(i32, i32, i32)> = (0..512)
+            .filter(|&c| d[c] == 0)
+            .map(|c| ((c % 8) as i32, ((c / 8) % 8) as i32, (c / 64) as i32))
+            .collect();
+        assert!(!occ.is_empty());
+        for c in 0..512usize {
+            let p = ((c % 8) as i32, ((c / 8) % 8) as i32, (c / 64) as i32);
+            let want = occ
+                .iter()
+                .map(|q| (p.0 - q.0).abs().max((p.1 - q.1).abs()).max((p.2 - q.2).abs()))
+                .min()
+                .unwrap();
+            assert_eq!(d[c] as i32, want.min(SKIP_MAX as i32), "cell {p:?}");
+        }
+        // Cells marked empty really have no density at their grid points.
+        let g = f.geom();
+        for c in (0..512).filter(|&c| d[c] > 0) {
+            let (cx, cy, cz) = (c % 8, (c / 8) % 8, c / 64);
+            for z in 2 * cz..=2 * cz + 2 {
+                for y in 2 * cy..=2 * cy + 2 {
+                    for x in 2 * cx..=2 * cx + 2 {
+                        assert!(f.density.sigma_at(g.index(x, y, z)) <= EMPTY_SIGMA);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn dense_colours_cover_every_grid_point() {
+        let f = ball();
+        let p = pack_field(&f).unwrap();
+        assert_eq!(p.colors.len(), 17 * 17 * 17);
+        let g = GridGeom::new(f.bounds(), [17; 3]);
+        let i = g.index(16, 0, 8);
+        let want = g.point_of(i) * 0.5 + 0.5;
+        let r = f16::from_bits(p.colors[i][0] as u16).to_f32();
+        let a = f16::from_bits((p.colors[i][1] >> 16) as u16).to_f32();
+        assert!((r - want.x).abs() < 1e-3);
+        assert_eq!(a, 1.0);
+        assert_eq!(p.info.res, [17, 17, 17, 0]);
+    }
+
+    #[test]
+    fn sparse_colours_keep_rank_order_and_prefixes() {
+        let f = ball();
+        let g = f.geom();
+        let bits = Bitmap::from_fn(g.res, |i| i % 7 == 0 || i == 100);
+        let ix = Arc::new(RankIndex::new(bits.clone()));
+        let data: Vec<f16> = bits
+            .ones()
+            .flat_map(|i| [f16::from_f32(i as f32 / 5000.0), f16::ZERO, f16::ONE])
+            .collect();
+        let mut f2 = f.clone();
+        f2.appearance = Appearance::Rgb(ChannelGrid::sparse(g, 3, ix.clone(), data));
+        let p = pack_field(&f2).unwrap();
+        assert_eq!(p.info.res[3], 1);
+        assert_eq!(p.colors.len(), ix.count());
+        // Emulate the shader's slot lookup for every voxel.
+        let [_, _, bo, po] = p.info.offsets;
+        for v in 0..g.len() {
+            let w = v >> 6;
+            let (lo, hi) = (p.aux[bo as usize + 2 * w], p.aux[bo as usize + 2 * w + 1]);
+            let b = (v & 63) as u32;
+            let (set, below) = if b < 32 {
+                ((lo >> b) & 1, (lo & ((1u32 << b) - 1)).count_ones())
+            } else {
+                ((hi >> (b - 32)) & 1, lo.count_ones() + (hi & ((1u32 << (b - 32)) - 1)).count_ones())
+            };
+            let slot = (set == 1).then(|| p.aux[po as usize + w] + below);
+            assert_eq!(slot.map(|s| s as usize), ix.slot(v), "voxel {v}");
+        }
+    }
+
+    #[test]
+    fn concatenation_offsets_fields() {
+        let f = ball();
+        let p = pack_field(&f).unwrap();
+        let (infos, density, colors, aux) = concat_fields(&[&p, &p]);
+        assert_eq!(density.len(), 2 * p.density.len());
+        assert_eq!(infos[1].offsets[0] as usize, p.density.len());
+        assert_eq!(infos[1].offsets[1] as usize, p.colors.len());
+        assert_eq!(infos[1].skip[3] as usize, p.aux.len());
+        assert_eq!(colors.len(), 2 * p.colors.len());
+        assert_eq!(aux.len(), 2 * p.aux.len());
+    }
+
+    #[test]
+    fn bitmap_words_split_little_endian() {
+        let mut b = Bitmap::new([8, 8, 2]);
+        for i in [0usize, 31, 32, 63, 64, 127] {
+            b.set(i, true);
+        }
+        let w = bitmap_u32(&b);
+        assert_eq!(w.len(), 4);
+        for i in 0..128usize {
+            let bit = w[i >> 5] >> (i & 31) & 1 == 1;
+            assert_eq!(bit, b.get(i), "bit {i}");
+        }
+    }
+
+    #[test]
+    fn layers_share_fields_and_empty_keep_masks_drop() {
+        let f = Arc::new(ball());
+        let mut bits = Bitmap::new(f.res());
+        let g = f.geom();
+        bits.set(g.index(8, 8, 8), true);
+        let bits = Arc::new(bits);
+        let empty = Arc::new(Bitmap::new(f.res()));
+        let mut moved = Layer::new(f.clone());
+        moved.mask = Mask::Keep(bits.clone());
+        moved.to_world = Affine3A::from_translation(Vec3::X);
+        let mut removed = Layer::new(f.clone());
+        removed.mask = Mask::Remove(bits.clone());
+        let mut nothing = Layer::new(f.clone());
+        nothing.mask = Mask::Keep(empty);
+        let scene = Scene::new(vec![removed, moved, nothing]);
+        let fields = distinct_fields(&scene);
+        assert_eq!(fields.len(), 1);
+        let bms = distinct_bitmaps(&scene);
+        assert_eq!(bms.len(), 2);
+        let (offs, total) = bitmap_offsets(&bms);
+        assert_eq!(offs, vec![0, (bits.words().len() * 2) as u32]);
+        assert_eq!(total, offs[1] as usize * 2);
+        let layers = pack_layers(&scene, &fields, &bms, &offs, &[]).unwrap();
+        assert_eq!(layers.len(), 2);
+        assert_eq!(layers[0].info[..3], [0, MASK_REMOVE, 0]);
+        assert_eq!(layers[1].info[1], MASK_KEEP);
+        // Keep box: voxel 8 ± 1 → [-0.125, 0.125]³ at spacing 0.125.
+        assert!((layers[1].box_min[0] + 0.125).abs() < 1e-6);
+        assert!((layers[1].box_max[2] - 0.125).abs() < 1e-6);
+        let m = Mat4::from_cols_array_2d(&layers[1].to_local);
+        assert!((m.transform_point3(Vec3::X) - Vec3::ZERO).length() < 1e-6);
+    }
+}

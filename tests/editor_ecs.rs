@@ -1,0 +1,144 @@
+//! The editor's model side, driven like the UI drives it: stroke messages
+//! become session commands, the object entity's bitmap equals the library's
+//! result for the same stroke, and undo / redo return to identical states.
+//! No window and no GPU needed.
+#![cfg(feature = "editor")]
+
+use bevy::prelude::*;
+use isrf::app::editor::session::{EditorSession, Request};
+use isrf::app::editor::state::StrokeMsg;
+use isrf::app::editor::EditorCorePlugin;
+use isrf::app::layers::{ObjectLayer, Selected, SessionName};
+use isrf::app::MarchScene;
+use isrf::command::{Command, FieldSource, Session};
+use isrf::render::{Layer, Scene};
+use isrf::segment::{apply_region, region_from_stroke, Polarity, SegmentParams, Stroke};
+use std::sync::Arc;
+
+const RES: usize = 40;
+
+fn app() -> App {
+    let mut app = App::new();
+    let mut es = EditorSession::new(Session::default());
+    es.apply(Command::LoadField {
+        name: "tabletop".into(),
+        source: FieldSource::Demo {
+            scene: "tabletop".into(),
+            res: RES,
+            seed: 0,
+        },
+        transform: None,
+    });
+    app.add_plugins(MinimalPlugins)
+        .insert_resource(es)
+        .add_plugins(EditorCorePlugin);
+    settle(&mut app);
+    app
+}
+
+/// Updates until the session has no queued or running request.
+fn settle(app: &mut App) {
+    for _ in 0..20_000 {
+        app.update();
+        if !app.world().resource::<EditorSession>().busy() {
+            // One more frame so entities mirror the final state.
+            app.update();
+            return;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    panic!("the session never finished its requests");
+}
+
+fn objects(app: &mut App) -> Vec<(String, Arc<isrf::field::Bitmap>, bool)> {
+    let mut q = app.world_mut().query::<(&SessionName, &ObjectLayer, Has<Selected>)>();
+    let mut v: Vec<_> = q
+        .iter(app.world())
+        .map(|(n, o, s)| (n.0.clone(), o.bitmap.clone(), s))
+        .collect();
+    v.sort_by(|a, b| a.0.cmp(&b.0));
+    v
+}
+
+fn demo_stroke(object: &str) -> Stroke {
+    let d = isrf::demo::build("tabletop", RES, 0).unwrap();
+    let o = d.object(object).unwrap();
+    let points = d
+        .stroke_pixels(o)
+        .into_iter()
+        .map(|[x, y]| glam::Vec2::new(x as f32 + 0.5, y as f32 + 0.5))
+        .collect();
+    Stroke {
+        camera: d.stroke_camera,
+        points,
+        radius: 3,
+        polarity: Polarity::Positive,
+        object: object.into(),
+        joined: true,
+    }
+}
+
+#[test]
+fn strokes_through_the_ecs_equal_the_library_and_undo_redo_restore() {
+    let mut app = app();
+    assert_eq!(
+        app.world().resource::<EditorSession>().state.fields.len(),
+        1,
+        "the demo field loads"
+    );
+    let stroke = demo_stroke("mug");
+    app.world_mut().write_message(StrokeMsg {
+        camera: stroke.camera,
+        points: stroke.points.clone(),
+        radius: stroke.radius,
+        polarity: Polarity::Positive,
+    });
+    settle(&mut app);
+    let objs = objects(&mut app);
+    assert_eq!(objs.len(), 1, "the stroke made one object");
+    let (name, bitmap, selected) = objs[0].clone();
+    assert!(selected, "the new object is selected");
+
+    // The library's answer for the same stroke on the same field.
+    let es = app.world().resource::<EditorSession>();
+    let field = es.state.fields[0].field.clone();
+    let scene = Scene::new(vec![Layer::new(field.clone())]);
+    let cache = field.feature_cache().unwrap();
+    let params = SegmentParams::default();
+    let (region, _) = region_from_stroke(&scene, &cache, &stroke, &params).unwrap();
+    let mut want = isrf::field::Bitmap::new(field.res());
+    apply_region(&mut want, &region, Polarity::Positive).unwrap();
+    assert!(want.count() > 20, "the mug stroke selects something");
+    assert_eq!(*bitmap, want, "ECS object == library segmentation");
+
+    // The scene for the GPU shows the selection as its own layer.
+    let march = app.world().resource::<MarchScene>();
+    assert_eq!(march.scene.as_ref().unwrap().layers.len(), 2);
+    assert!(march.overlay.iter().any(|o| o.highlight));
+
+    // A second (negative) stroke on the selected object, then undo / redo.
+    let mut neg = stroke.clone();
+    neg.points.truncate(neg.points.len().div_ceil(2));
+    app.world_mut().write_message(StrokeMsg {
+        camera: neg.camera,
+        points: neg.points.clone(),
+        radius: 1,
+        polarity: Polarity::Negative,
+    });
+    settle(&mut app);
+    let after_neg = objects(&mut app)[0].1.clone();
+    assert!(after_neg.count() < bitmap.count(), "the negative stroke removed voxels");
+
+    app.world_mut().resource_mut::<EditorSession>().push(Request::Undo);
+    settle(&mut app);
+    assert_eq!(*objects(&mut app)[0].1, *bitmap, "undo restores the first mask");
+    app.world_mut().resource_mut::<EditorSession>().push(Request::Undo);
+    settle(&mut app);
+    assert!(objects(&mut app).is_empty(), "undo removes the object");
+    app.world_mut().resource_mut::<EditorSession>().push(Request::Redo);
+    app.world_mut().resource_mut::<EditorSession>().push(Request::Redo);
+    settle(&mut app);
+    let objs = objects(&mut app);
+    assert_eq!(objs[0].0, name);
+    assert_eq!(*objs[0].1, *after_neg, "redo returns to the same state");
+}
