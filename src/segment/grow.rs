@@ -96,48 +96,117 @@ fn neighbour(res: [usize; 3], c: [usize; 3], d: [i64; 3]) -> Option<usize> {
     Some(x as usize + res[0] * (y as usize + res[1] * z as usize))
 }
 
+/// Neighbours whose distances are computed together: each lane is one
+/// neighbour, its squared distance summed channel by channel in the order of
+/// a plain loop (bit-identical), with the lanes' independent sums
+/// interleaved so that they do not wait on each other's additions.
+const LANES: usize = 8;
+
+/// Per-thread scratch of [`decide`]: the occupied neighbours of a voxel and
+/// their squared feature distances.
+struct Scratch {
+    /// (offset position, cache row, masked) of each occupied neighbour.
+    hood: Vec<(usize, usize, bool)>,
+    df: Vec<f32>,
+}
+
+impl Scratch {
+    fn new() -> Self {
+        Scratch {
+            hood: Vec::with_capacity(27),
+            df: Vec::with_capacity(32),
+        }
+    }
+}
+
+/// Squared feature distances from `fc` to the rows of `s.hood`, into `s.df`.
+fn hood_distances(cache: &FeatureCache, fc: &[f32], s: &mut Scratch) {
+    let c = fc.len();
+    s.df.clear();
+    for group in s.hood.chunks(LANES) {
+        // Unused lanes read the centre's own row (distance 0, discarded).
+        let rows: [&[f32]; LANES] = std::array::from_fn(|l| group.get(l).map_or(fc, |h| &cache.row(h.1)[..c]));
+        let mut acc = [0.0f32; LANES];
+        for (ch, &f) in fc.iter().enumerate() {
+            for l in 0..LANES {
+                let d = rows[l][ch] - f;
+                acc[l] += d * d;
+            }
+        }
+        s.df.extend_from_slice(&acc[..group.len()]);
+    }
+}
+
 /// Decides one frontier candidate: Some(true) to add, Some(false) to reject,
 /// None if it is not on the frontier (masked, empty, or no masked neighbour).
-fn decide(cache: &FeatureCache, mask: &Bitmap, offs: &Offsets, p: &GrowParams, v: usize) -> Option<bool> {
+fn decide(
+    cache: &FeatureCache,
+    mask: &Bitmap,
+    offs: &Offsets,
+    p: &GrowParams,
+    v: usize,
+    s: &mut Scratch,
+) -> Option<bool> {
     if mask.get(v) {
         return None;
     }
     let rc = cache.index.slot(v)?;
-    let fc = cache.row(rc);
-    let (mut num, mut den) = (0.0f32, 0.0f32);
     let mut touches = false;
+    s.hood.clear();
     offs.for_each(v, |k, n| {
         let masked = mask.get(n);
         touches |= masked;
-        let Some(rn) = cache.index.slot(n) else { return };
-        let df: f32 = cache.row(rn).iter().zip(fc).map(|(a, b)| (a - b) * (a - b)).sum();
+        if let Some(rn) = cache.index.slot(n) {
+            s.hood.push((k, rn, masked));
+        }
+    });
+    if !touches {
+        return None;
+    }
+    hood_distances(cache, cache.row(rc), s);
+    // Sums in offset order, as the definition reads.
+    let (mut num, mut den) = (0.0f32, 0.0f32);
+    for (&(k, _, masked), &df) in s.hood.iter().zip(&s.df) {
         let w = offs.step[k].1 * (-df / p.sigma_f).exp();
         den += w;
         if masked {
             num += w;
         }
-    });
-    touches.then(|| den > 0.0 && num / den > p.tau)
+    }
+    Some(den > 0.0 && num / den > p.tau)
 }
+
+/// Below these sizes a step's parts run on the calling thread: late growth
+/// steps touch a few hundred voxels, for which waking the thread pool (on a
+/// busy machine, waiting for a time slice) costs more than the work.
+const PAR_MIN_SOURCES: usize = 4096;
+const PAR_MIN_SORT: usize = 1 << 16;
+const PAR_MIN_DECIDE: usize = 512;
 
 /// Unmasked occupied neighbours of `voxels` (deduplicated, ascending).
 fn candidates(cache: &FeatureCache, mask: &Bitmap, offs: &Offsets, voxels: &[u32]) -> Vec<u32> {
     let occupied = cache.index.bits();
-    let mut out: Vec<u32> = voxels
-        .par_chunks(2048)
-        .flat_map_iter(|chunk| {
-            let mut local = Vec::new();
-            for &v in chunk {
-                offs.for_each(v as usize, |_, n| {
-                    if !mask.get(n) && occupied.get(n) {
-                        local.push(n as u32);
-                    }
-                });
-            }
-            local
-        })
-        .collect();
-    out.par_sort_unstable();
+    let collect = |chunk: &[u32]| {
+        let mut local = Vec::new();
+        for &v in chunk {
+            offs.for_each(v as usize, |_, n| {
+                if !mask.get(n) && occupied.get(n) {
+                    local.push(n as u32);
+                }
+            });
+        }
+        local
+    };
+    let mut out: Vec<u32> = if voxels.len() < PAR_MIN_SOURCES {
+        collect(voxels)
+    } else {
+        voxels.par_chunks(2048).flat_map_iter(collect).collect()
+    };
+    if out.len() < PAR_MIN_SORT {
+        out.sort_unstable();
+    } else {
+        out.par_sort_unstable();
+    }
     out.dedup();
     out
 }
@@ -169,11 +238,18 @@ impl<'a> Grower<'a> {
             None => mask.ones().map(|i| i as u32).collect(),
         };
         let cand = candidates(self.cache, mask, &self.offs, &sources);
-        let added: Vec<u32> = cand
-            .par_iter()
-            .copied()
-            .filter(|&v| decide(self.cache, mask, &self.offs, &self.params, v as usize) == Some(true))
-            .collect();
+        let (cache, offs, params) = (self.cache, &self.offs, &self.params);
+        let joins = |s: &mut Scratch, v: u32| decide(cache, mask, offs, params, v as usize, s) == Some(true);
+        let added: Vec<u32> = if cand.len() < PAR_MIN_DECIDE {
+            let mut s = Scratch::new();
+            cand.iter().copied().filter(|&v| joins(&mut s, v)).collect()
+        } else {
+            cand.par_iter()
+                .copied()
+                .map_init(|| Scratch::new(), |s, v| joins(s, v).then_some(v))
+                .flatten()
+                .collect()
+        };
         for &v in &added {
             mask.set(v as usize, true);
         }
@@ -198,10 +274,58 @@ pub fn grow_step_dense(cache: &FeatureCache, mask: &mut Bitmap, params: &GrowPar
     let offs = Offsets::new(cache.geom.res, params);
     let added: Vec<usize> = (0..cache.geom.len())
         .into_par_iter()
-        .filter(|&v| decide(cache, mask, &offs, params, v) == Some(true))
+        .map_init(
+            || Scratch::new(),
+            |s, v| (decide(cache, mask, &offs, params, v, s) == Some(true)).then_some(v),
+        )
+        .flatten()
         .collect();
     for &v in &added {
         mask.set(v, true);
     }
     added.len()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::{Aabb, FieldBuilder};
+    use glam::Vec3;
+
+    #[test]
+    fn lane_distances_equal_the_plain_sums_bit_for_bit() {
+        // 13 channels: one full group of 8 lanes, then a partial one.
+        let feat = |p: Vec3, out: &mut [f32]| {
+            for (c, o) in out.iter_mut().enumerate() {
+                *o = (3.1 * p.x + 1.7 * c as f32).sin() * (2.3 * p.y - 0.4 * c as f32).cos() + p.z * 0.1;
+            }
+        };
+        let f = FieldBuilder::new(Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0)), [9; 3]).build(
+            |p| if p.length() < 1.2 { 1.0 } else { 0.0 },
+            |_| Vec3::ONE,
+            Some((13, &feat)),
+        );
+        let cache = FeatureCache::build(&f).unwrap();
+        let offs = Offsets::new(cache.geom.res, &GrowParams::default());
+        let mut s = Scratch::new();
+        let mut checked = 0;
+        for &v in &cache.voxels {
+            s.hood.clear();
+            offs.for_each(v as usize, |k, n| {
+                if let Some(rn) = cache.index.slot(n) {
+                    s.hood.push((k, rn, false));
+                }
+            });
+            let fc = cache.row(cache.index.slot(v as usize).unwrap());
+            hood_distances(&cache, fc, &mut s);
+            assert_eq!(s.df.len(), s.hood.len());
+            for (&(_, rn, _), &df) in s.hood.iter().zip(&s.df) {
+                let plain: f32 = cache.row(rn).iter().zip(fc).map(|(a, b)| (a - b) * (a - b)).sum();
+                assert_eq!(df.to_bits(), plain.to_bits());
+                checked += 1;
+            }
+        }
+        // Interior voxels have 27 occupied neighbours, border ones fewer.
+        assert!(checked > 27 * 100, "{checked}");
+    }
 }
