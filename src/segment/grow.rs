@@ -246,7 +246,7 @@ impl<'a> Grower<'a> {
         } else {
             cand.par_iter()
                 .copied()
-                .map_init(|| Scratch::new(), |s, v| joins(s, v).then_some(v))
+                .map_init(Scratch::new, |s, v| joins(s, v).then_some(v))
                 .flatten()
                 .collect()
         };
@@ -274,10 +274,9 @@ pub fn grow_step_dense(cache: &FeatureCache, mask: &mut Bitmap, params: &GrowPar
     let offs = Offsets::new(cache.geom.res, params);
     let added: Vec<usize> = (0..cache.geom.len())
         .into_par_iter()
-        .map_init(
-            || Scratch::new(),
-            |s, v| (decide(cache, mask, &offs, params, v, s) == Some(true)).then_some(v),
-        )
+        .map_init(Scratch::new, |s, v| {
+            (decide(cache, mask, &offs, params, v, s) == Some(true)).then_some(v)
+        })
         .flatten()
         .collect();
     for &v in &added {
