@@ -27,6 +27,8 @@ enum Command {
     Render(cli::render::Args),
     /// Segment an object from brush strokes into a 3D bitmap.
     Segment(cli::segment::Args),
+    /// Fit a field to a capture (Blender, LLFF, nerfstudio, COLMAP), optionally distilling teacher features.
+    Train(cli::train::Args),
     /// Score segmentation against ground truth (demo scenes or NVOS layout), as JSON.
     Eval(cli::eval::Args),
     /// Run an edit script (RON or JSON list of commands) headless.
@@ -44,6 +46,7 @@ fn main() {
         Command::Demo(a) => cli::demo::run(a),
         Command::Render(a) => cli::render::run(a),
         Command::Segment(a) => cli::segment::run(a),
+        Command::Train(a) => cli::train::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Run(a) => cli::run::run(a),
         Command::Bench(a) => cli::bench::run(a),

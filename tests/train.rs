@@ -397,5 +397,6 @@ fn sparse_adam_updates_only_touched_active_points() {
 #[test]
 fn resolution_follows_the_box_shape() {
     let b = Aabb::new(Vec3::ZERO, Vec3::new(2.0, 1.0, 0.5));
-    assert_eq!(res_for(b, 161), [161, 81, 41]);
+    assert_eq!(res_for(b, 161, [1.0; 3]), [161, 81, 41]);
+    assert_eq!(res_for(b, 161, [1.0, 1.0, 0.5]), [161, 81, 21]);
 }

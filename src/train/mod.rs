@@ -8,15 +8,19 @@
 //! samples, activation, interpolation and SH), so a trained model exported
 //! with [`Model::to_field`] renders as it trained.
 
+pub mod checkpoint;
 pub mod march;
 pub mod model;
 pub mod optim;
+pub mod plot;
 pub mod rays;
+pub mod session;
 pub mod teacher;
 pub mod trainer;
 
 pub use march::{GradBuf, MarchOpts, RayOut, Scratch};
 pub use model::{DenseGrid, Model};
 pub use rays::{default_bounds, RaySet};
+pub use session::{preset, EvalReport, Session};
 pub use teacher::{FeatureMap, FeatureMaps};
 pub use trainer::{psnr_of, step_of, StepStats, TrainConfig, Trainer};

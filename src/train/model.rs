@@ -96,6 +96,47 @@ impl Model {
         Ok(m)
     }
 
+    /// Reassembles a model from its arrays (checkpoints); checks sizes.
+    pub fn from_parts(
+        geom: GridGeom,
+        shift: f32,
+        degree: usize,
+        density: Vec<f32>,
+        sh: Vec<f32>,
+        active: Vec<u64>,
+        features: Option<DenseGrid>,
+    ) -> Result<Model> {
+        check_res(geom.res, "training grid")?;
+        let n = geom.len();
+        crate::ensure!(degree <= 2, "SH degree must be 0, 1 or 2, got {degree}");
+        crate::ensure!(
+            density.len() == n && sh.len() == n * 3 * sh_coeffs(degree) && active.len() == n.div_ceil(64),
+            "model arrays do not match the grid {:?}",
+            geom.res
+        );
+        if let Some(f) = &features {
+            crate::ensure!(
+                f.data.len() == f.geom.len() * f.channels,
+                "feature grid size does not match its resolution"
+            );
+        }
+        let mut m = Model {
+            geom,
+            shift,
+            degree,
+            density,
+            sh,
+            features,
+            active,
+            cells: vec![],
+            blocks: vec![],
+            block_dims: [1; 3],
+        };
+        m.clear_tail();
+        m.refresh_masks();
+        Ok(m)
+    }
+
     pub fn len(&self) -> usize {
         self.geom.len()
     }
@@ -355,11 +396,12 @@ impl Model {
 }
 
 /// Grid resolution with about `longest` points along the longest side of
-/// `bounds` and the same spacing along every axis (at least 2 per axis).
-pub fn res_for(bounds: Aabb, longest: usize) -> [usize; 3] {
+/// `bounds` and the same spacing along every axis, then scaled per axis by
+/// `scale` (e.g. fewer points along NDC depth); at least 2 per axis.
+pub fn res_for(bounds: Aabb, longest: usize, scale: [f32; 3]) -> [usize; 3] {
     let s = bounds.size();
     let m = s.max_element();
-    [s.x, s.y, s.z].map(|e| (((longest - 1) as f32 * e / m).round() as usize + 1).max(2))
+    [0, 1, 2].map(|a| (((longest - 1) as f32 * s[a] / m * scale[a]).round() as usize + 1).max(2))
 }
 
 /// softplus⁻¹(y) = ln(eʸ − 1), stable for small and large y.

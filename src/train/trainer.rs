@@ -30,6 +30,9 @@ pub struct TrainConfig {
     pub res: usize,
     /// Grid points along the longest side at the first stage.
     pub coarse_res: usize,
+    /// Per-axis multipliers of the resolution (cubic voxels when all 1;
+    /// forward-facing scenes need less along NDC depth).
+    pub axis_scale: [f32; 3],
     /// Resolution stages from `coarse_res` to `res` (geometric), the last
     /// one starting at `last_stage_at` of the iterations.
     pub stages: usize,
@@ -81,6 +84,7 @@ impl Default for TrainConfig {
             batch: 4096,
             res: 160,
             coarse_res: 64,
+            axis_scale: [1.0; 3],
             stages: 4,
             last_stage_at: 0.5,
             sh_degree: 2,
@@ -122,6 +126,10 @@ impl TrainConfig {
             self.coarse_res
         );
         ensure!(self.stages >= 1 && self.stages <= 16, "stages must be 1..16");
+        ensure!(
+            self.axis_scale.iter().all(|s| s.is_finite() && (0.05..=4.0).contains(s)),
+            "axis scales must be in [0.05, 4]"
+        );
         ensure!(
             (0.0..1.0).contains(&self.last_stage_at),
             "last_stage_at must be in [0, 1)"
@@ -208,6 +216,8 @@ pub struct Trainer {
     pub rays: RaySet,
     /// Teacher features of the training views (distillation).
     pub teacher: Option<FeatureMaps>,
+    /// What the schedule did (stage changes, pruning), for people to read.
+    pub notes: Vec<String>,
     grads: Vec<GradBuf>,
     useful: Vec<u32>,
 }
@@ -219,7 +229,7 @@ impl Trainer {
         ensure!(!rays.is_empty(), "no training rays");
         ensure!(bounds.is_valid(), "training box {bounds:?} is not a valid box");
         let res0 = config.schedule()[0].1;
-        let geom = GridGeom::new(bounds, res_for(bounds, res0));
+        let geom = GridGeom::new(bounds, res_for(bounds, res0, config.axis_scale));
         let step = step_of(&geom);
         let init_sigma = -(1.0 - config.init_alpha).ln() / step;
         let model = Model::new(geom, 0, 0.0, init_sigma)?;
@@ -243,6 +253,7 @@ impl Trainer {
             history,
             rays,
             teacher: None,
+            notes: vec![],
             grads: vec![],
             useful: vec![],
         };
@@ -302,24 +313,37 @@ impl Trainer {
                 continue;
             }
             let step = self.step_size();
-            self.model
-                .prune(step, self.config.prune_alpha, self.config.prune_dilate);
+            let kept = self.model.prune(step, self.config.prune_alpha, self.config.prune_dilate);
             let mut bounds = self.model.geom.bounds;
             if k == 1 && self.config.shrink_bounds {
                 if let Some(b) = self.model.occupied_bounds(step, self.config.prune_alpha, 2) {
                     bounds = b;
                 }
             }
-            let geom = GridGeom::new(bounds, res_for(bounds, res));
+            let geom = GridGeom::new(bounds, res_for(bounds, res, self.config.axis_scale));
             self.model = self.model.resampled(geom)?.with_degree(self.config.sh_degree);
             self.reset_buffers(false);
+            self.notes.push(format!(
+                "iteration {}: stage {k}: pruned to {kept} voxels, box {:.3?}..{:.3?}, grid {:?}, {} active, {} of {} rays meet the box",
+                self.iter,
+                bounds.min.to_array(),
+                bounds.max.to_array(),
+                geom.res,
+                self.model.active_count(),
+                self.useful.len(),
+                self.rays.len()
+            ));
         }
         let pe = self.config.prune_every;
         if pe > 0 && self.iter > 0 && self.iter.is_multiple_of(pe) && self.iter < self.config.iters {
             let first = sched.get(1).map_or(usize::MAX, |s| s.0);
             if self.iter > first {
-                self.model
-                    .prune(self.step_size(), self.config.prune_alpha, self.config.prune_dilate);
+                let kept = self.model.prune(self.step_size(), self.config.prune_alpha, self.config.prune_dilate);
+                self.notes.push(format!(
+                    "iteration {}: pruned to {kept} of {} voxels",
+                    self.iter,
+                    self.model.len()
+                ));
             }
         }
         if self.iter == self.config.iters && self.config.feature_iters > 0 && self.model.features.is_none() {
@@ -328,7 +352,7 @@ impl Trainer {
                 .as_ref()
                 .map(|t| t.channels)
                 .ok_or_else(|| crate::Error::invalid("feature distillation needs teacher features"))?;
-            let res = res_for(self.model.geom.bounds, self.config.feature_res);
+            let res = res_for(self.model.geom.bounds, self.config.feature_res, self.config.axis_scale);
             self.model.add_features(res, ch)?;
             self.reset_buffers(true);
             self.opt.features = Moments::new(self.model.features.as_ref().map_or(0, |f| f.data.len()));

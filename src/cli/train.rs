@@ -1,0 +1,294 @@
+//! `isrf train DATASET --out FIELD`: fits a field to a capture (Blender,
+//! LLFF, nerfstudio or COLMAP, detected), optionally distilling teacher
+//! features; writes the field, a checkpoint for `--resume`, a loss/PSNR
+//! plot and a JSON report next to it.
+//!
+//! The field file stores no background: it renders as trained with the
+//! background the dataset was composited on (white unless `--background`),
+//! which is also `isrf render`'s default; pass `isrf render --background`
+//! with the same colour otherwise.
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use isrf::data::{Dataset, DatasetKind, LoadOptions};
+use isrf::train::plot::save_plot;
+use isrf::train::{preset, Session, TrainConfig};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Dataset folder (or its transforms_*.json / transforms.json / poses_bounds.npy).
+    pub dataset: PathBuf,
+    /// Output field file (.safetensors).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Radiance iterations (default per dataset kind).
+    #[arg(long)]
+    pub iters: Option<usize>,
+    /// Grid points along the longest side of the final grid.
+    #[arg(long)]
+    pub res: Option<usize>,
+    /// Downscale images (and cameras) by N on load.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+    /// Teacher for feature distillation: an ONNX ViT, or a folder of
+    /// precomputed per-image feature maps (.npy/.npz).
+    #[arg(long)]
+    pub teacher: Option<PathBuf>,
+    /// Feature distillation iterations after the radiance ones (default:
+    /// 1500 with a teacher, 0 without).
+    #[arg(long)]
+    pub feature_iters: Option<usize>,
+    /// Continue from the checkpoint (see --checkpoint).
+    #[arg(long)]
+    pub resume: bool,
+    /// Checkpoint file (default: next to --out, `<name>.ckpt.safetensors`).
+    #[arg(long)]
+    pub checkpoint: Option<PathBuf>,
+    /// Seconds between checkpoints (0: only at the end).
+    #[arg(long, default_value_t = 300)]
+    pub checkpoint_every: u64,
+    /// Rays per iteration.
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Spherical-harmonic degree of the colour (0–2).
+    #[arg(long)]
+    pub sh_degree: Option<usize>,
+    /// Background colour the images are composited on (default: white).
+    #[arg(long, value_parser = crate::cli::render::parse_rgb)]
+    pub background: Option<glam::Vec3>,
+    /// LLFF: read images_N.
+    #[arg(long, default_value_t = 8)]
+    pub llff_factor: u32,
+    /// Iterations between held-out evaluations shown in the progress bar and plot.
+    #[arg(long, default_value_t = 500)]
+    pub eval_every: usize,
+    /// JSON file with training settings (any TrainConfig fields) applied
+    /// over the preset, before the flags above.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Random seed of the ray batches.
+    #[arg(long)]
+    pub seed: Option<u64>,
+}
+
+/// `<out dir>/<out stem><suffix>`.
+fn sibling(out: &Path, suffix: &str) -> PathBuf {
+    let stem = out
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "field".into());
+    let stem = stem.strip_suffix(".safetensors").unwrap_or(&stem).to_string();
+    out.with_file_name(format!("{stem}{suffix}"))
+}
+
+#[derive(Serialize)]
+struct Report<'a> {
+    dataset: String,
+    kind: String,
+    field: String,
+    iterations: usize,
+    seconds: f64,
+    rays_per_second: f64,
+    final_train_psnr: f32,
+    resolution: [usize; 3],
+    active_voxels: usize,
+    held_out: Option<&'a isrf::train::EvalReport>,
+    config: &'a TrainConfig,
+}
+
+fn load_config(a: &Args, kind: DatasetKind) -> Result<TrainConfig> {
+    let mut c = preset(kind);
+    if let Some(p) = &a.config {
+        let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+        // Overlay the file's fields on the preset.
+        let mut v = serde_json::to_value(&c)?;
+        let over: serde_json::Value =
+            serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", p.display()))?;
+        let (Some(base), Some(over)) = (v.as_object_mut(), over.as_object()) else {
+            bail!("{}: expected a JSON object of training settings", p.display());
+        };
+        for (k, val) in over {
+            if !base.contains_key(k) {
+                bail!("{}: unknown training setting '{k}'", p.display());
+            }
+            base.insert(k.clone(), val.clone());
+        }
+        c = serde_json::from_value(v).with_context(|| format!("{}: bad training settings", p.display()))?;
+    }
+    if let Some(n) = a.iters {
+        c.iters = n;
+    }
+    if let Some(n) = a.res {
+        c.res = n;
+        c.coarse_res = c.coarse_res.min(n);
+    }
+    if let Some(n) = a.batch {
+        c.batch = n;
+    }
+    if let Some(d) = a.sh_degree {
+        c.sh_degree = d;
+    }
+    if let Some(s) = a.seed {
+        c.seed = s;
+    }
+    c.feature_iters = a.feature_iters.unwrap_or(if a.teacher.is_some() { 1500 } else { 0 });
+    c.validate()?;
+    Ok(c)
+}
+
+pub fn run(a: Args) -> Result<()> {
+    if a.downscale == 0 {
+        bail!("--downscale must be at least 1");
+    }
+    let kind = Dataset::detect(&a.dataset)?;
+    let config = load_config(&a, kind)?;
+    let opts = LoadOptions {
+        downscale: a.downscale,
+        background: a.background.map_or([1.0; 3], |b| b.to_array()),
+        llff_factor: a.llff_factor,
+        ..Default::default()
+    };
+    let t0 = Instant::now();
+    let ds = Dataset::load(&a.dataset, &opts)?;
+    for n in &ds.notes {
+        eprintln!("note: {n}");
+    }
+    eprintln!(
+        "{:?} dataset {}: {} views ({} train) loaded in {:.1} s",
+        ds.kind,
+        ds.root.display(),
+        ds.len(),
+        ds.indices(isrf::data::Split::Train).len(),
+        t0.elapsed().as_secs_f64()
+    );
+    let ckpt = a.checkpoint.clone().unwrap_or_else(|| sibling(&a.out, ".ckpt.safetensors"));
+    let mut session = if a.resume {
+        if !ckpt.is_file() {
+            bail!("--resume: no checkpoint at {}", ckpt.display());
+        }
+        let s = Session::resume(ds, &ckpt, a.iters, a.feature_iters)?;
+        eprintln!("resumed from {} at iteration {}", ckpt.display(), s.trainer.iter);
+        s
+    } else {
+        Session::new(ds, config)?
+    };
+    if session.trainer.config.feature_iters > 0 {
+        bail!("feature distillation is not available yet ({:?})", a.teacher);
+    }
+    train_loop(&mut session, &a, &ckpt)?;
+    finish(&session, &a, &ckpt)
+}
+
+fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
+    let total = session.trainer.config.total_iters();
+    let bar = ProgressBar::new(total as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} it  {elapsed} (eta {eta})  {msg}")
+            .expect("valid progress template"),
+    );
+    bar.set_position(session.trainer.iter as u64);
+    let mut last_ckpt = Instant::now();
+    let mut eval_psnr: Option<f32> = None;
+    let (mut loss_avg, mut psnr_avg) = (0.0f32, 0.0f32);
+    while !session.trainer.is_done() {
+        let s = session.trainer.step()?;
+        let k = 0.05;
+        loss_avg = if s.iter <= 1 { s.loss } else { (1.0 - k) * loss_avg + k * s.loss };
+        psnr_avg = if s.iter <= 1 { s.psnr } else { (1.0 - k) * psnr_avg + k * s.psnr };
+        if a.eval_every > 0 && (s.iter.is_multiple_of(a.eval_every) || s.iter == total) {
+            eval_psnr = session.quick_eval(2);
+            if let Some(p) = eval_psnr {
+                session.evals.push((s.iter, p));
+            }
+        }
+        let m = session.model();
+        let feat = if session.trainer.in_feature_phase() {
+            format!("  feat {:.4}", s.feature_loss)
+        } else {
+            String::new()
+        };
+        bar.set_message(format!(
+            "loss {loss_avg:.5}  psnr {psnr_avg:.2} dB{}  grid {:?}  active {:.1}%{feat}",
+            eval_psnr.map_or(String::new(), |p| format!("  held-out {p:.2} dB")),
+            m.geom.res,
+            100.0 * m.active_count() as f64 / m.len() as f64
+        ));
+        bar.set_position(s.iter as u64);
+        if a.checkpoint_every > 0 && last_ckpt.elapsed().as_secs() >= a.checkpoint_every && !session.trainer.is_done() {
+            session.save_checkpoint(ckpt)?;
+            last_ckpt = Instant::now();
+        }
+    }
+    bar.finish();
+    Ok(())
+}
+
+fn finish(session: &Session, a: &Args, ckpt: &Path) -> Result<()> {
+    let t = &session.trainer;
+    let field = Arc::new(t.model.to_field());
+    field.save(&a.out)?;
+    session.save_checkpoint(ckpt)?;
+    let plot = sibling(&a.out, ".train.png");
+    save_plot(&plot, &t.history, &session.evals)?;
+    let seconds: f64 = t.history.iter().map(|s| s.seconds as f64).sum();
+    let rays: f64 = t.history.iter().map(|s| s.rays as f64).sum();
+    eprintln!(
+        "field {} written ({:?} grid, {:.1} MB); checkpoint {}; plot {}",
+        a.out.display(),
+        field.res(),
+        field.memory_bytes() as f64 / 1e6,
+        ckpt.display(),
+        plot.display()
+    );
+    eprintln!(
+        "trained {} iterations in {:.0} s ({:.0} rays/s, {:.2} it/s)",
+        t.history.len(),
+        seconds,
+        rays / seconds.max(1e-9),
+        t.history.len() as f64 / seconds.max(1e-9)
+    );
+    let t0 = Instant::now();
+    let report = session.final_eval(field.clone())?;
+    if let Some(r) = &report {
+        println!(
+            "held-out PSNR (reference renderer, {} views at {}x{}): {:.2} dB  [{:.1} s]",
+            r.psnr.len(),
+            r.width,
+            r.height,
+            r.mean_psnr,
+            t0.elapsed().as_secs_f64()
+        );
+    }
+    if session.dataset.kind != DatasetKind::Blender && !session.eval_views.is_empty() {
+        let cams = sibling(&a.out, ".eval_cameras.json");
+        session.eval_cameras().save(&cams)?;
+        eprintln!("held-out cameras for `isrf render --cameras`: {}", cams.display());
+    }
+    let bg = session.dataset.background;
+    if bg != [1.0; 3] {
+        eprintln!(
+            "note: trained on background {},{},{}: render with `isrf render --background {},{},{}`",
+            bg[0], bg[1], bg[2], bg[0], bg[1], bg[2]
+        );
+    }
+    let rep = Report {
+        dataset: session.dataset.root.display().to_string(),
+        kind: format!("{:?}", session.dataset.kind),
+        field: a.out.display().to_string(),
+        iterations: t.iter,
+        seconds,
+        rays_per_second: rays / seconds.max(1e-9),
+        final_train_psnr: t.history.last().map_or(0.0, |s| s.psnr),
+        resolution: t.model.geom.res,
+        active_voxels: t.model.active_count(),
+        held_out: report.as_ref(),
+        config: &t.config,
+    };
+    let json = sibling(&a.out, ".train.json");
+    isrf::error::write_atomic(&json, serde_json::to_string_pretty(&rep)?.as_bytes())?;
+    Ok(())
+}

@@ -1,0 +1,243 @@
+//! A training run on a dataset: presets per capture kind, the trainer over
+//! the training views, held-out evaluation (quick, with the training
+//! forward pass; final, with the reference renderer on the exported field),
+//! checkpoints that refuse to resume on different data.
+
+use super::checkpoint;
+use super::model::Model;
+use super::rays::{default_bounds, RaySet};
+use super::trainer::{psnr_of, TrainConfig, Trainer};
+use crate::camera::{Camera, CameraSet};
+use crate::data::{Dataset, DatasetKind, Split};
+use crate::error::{Error, Result};
+use crate::field::{Aabb, Field};
+use crate::render::{render, RenderOptions, Scene};
+use glam::Vec3;
+use serde::Serialize;
+use std::path::Path;
+use std::sync::Arc;
+
+/// Default settings per capture kind (measured on lego 200×200 and fern
+/// `images_8` on two cores; see the crate's training notes).
+pub fn preset(kind: DatasetKind) -> TrainConfig {
+    let base = TrainConfig::default();
+    match kind {
+        DatasetKind::Blender => TrainConfig {
+            iters: 5000,
+            res: 160,
+            coarse_res: 64,
+            ..base
+        },
+        // Forward-facing: the NDC box is already tight; depth needs fewer
+        // grid points than the image plane; TV keeps the sparse views from
+        // floating colour into empty space.
+        DatasetKind::Llff => TrainConfig {
+            iters: 5000,
+            res: 256,
+            coarse_res: 96,
+            axis_scale: [1.0, 1.0, 0.5],
+            shrink_bounds: false,
+            tv_density: 1e-2,
+            tv_sh: 1e-3,
+            ..base
+        },
+        DatasetKind::Nerfstudio | DatasetKind::Colmap => TrainConfig {
+            iters: 5000,
+            res: 160,
+            ..base
+        },
+    }
+}
+
+/// The held-out split of a dataset: val for Blender, test otherwise.
+pub fn eval_split(ds: &Dataset) -> Split {
+    if ds.kind == DatasetKind::Blender && !ds.indices(Split::Val).is_empty() {
+        Split::Val
+    } else {
+        Split::Test
+    }
+}
+
+pub struct Session {
+    pub dataset: Dataset,
+    pub trainer: Trainer,
+    /// Dataset indices of the held-out views.
+    pub eval_views: Vec<usize>,
+    /// Identifies the data (checked when resuming).
+    pub data_key: String,
+    /// Held-out PSNR measured during training (iteration, dB).
+    pub evals: Vec<super::plot::EvalPoint>,
+}
+
+/// PSNR per held-out view and their mean.
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalReport {
+    pub views: Vec<String>,
+    pub psnr: Vec<f64>,
+    pub mean_psnr: f64,
+    pub width: u32,
+    pub height: u32,
+}
+
+fn data_key(ds: &Dataset) -> String {
+    let train = ds.indices(Split::Train);
+    let (w, h) = train
+        .first()
+        .map_or((0, 0), |&i| (ds.images[i].width, ds.images[i].height));
+    let root = std::fs::canonicalize(&ds.root).unwrap_or_else(|_| ds.root.clone());
+    format!(
+        "{:?} {} train views {} at {w}x{h} background {:?}",
+        ds.kind,
+        root.display(),
+        train.len(),
+        ds.background
+    )
+}
+
+fn train_rays(ds: &Dataset) -> Result<RaySet> {
+    let idx = ds.indices(Split::Train);
+    crate::ensure!(!idx.is_empty(), "{}: the dataset has no training views", ds.root.display());
+    let views: Vec<(Camera, &crate::data::Image)> = idx
+        .iter()
+        .map(|&i| (ds.cameras.frames[i].camera, &ds.images[i]))
+        .collect();
+    RaySet::build(&views)
+}
+
+impl Session {
+    /// A fresh run. `config.background` is taken from the dataset.
+    pub fn new(dataset: Dataset, mut config: TrainConfig) -> Result<Session> {
+        config.background = dataset.background;
+        let bounds = match config.bounds {
+            Some([lo, hi]) => Aabb::new(Vec3::from(lo), Vec3::from(hi)),
+            None => default_bounds(&dataset),
+        };
+        let rays = train_rays(&dataset)?;
+        let trainer = Trainer::new(config, rays, bounds)?;
+        Ok(Self::assemble(dataset, trainer))
+    }
+
+    /// Continues from a checkpoint; `iters` / `feature_iters` may extend the
+    /// run. The checkpoint must come from the same data.
+    pub fn resume(dataset: Dataset, ckpt: &Path, iters: Option<usize>, feature_iters: Option<usize>) -> Result<Session> {
+        let r = checkpoint::load(ckpt)?;
+        let key = data_key(&dataset);
+        if r.state.data != key {
+            return Err(Error::bad_file(
+                ckpt,
+                format!(
+                    "checkpoint was trained on different data ({}), not {key}",
+                    r.state.data
+                ),
+            ));
+        }
+        let mut config = r.state.config.clone();
+        if let Some(n) = iters {
+            crate::ensure!(
+                n >= r.state.iter.min(config.iters),
+                "--iters {n} is below the {} iterations already done",
+                r.state.iter
+            );
+            config.iters = n;
+        }
+        if let Some(n) = feature_iters {
+            config.feature_iters = n;
+        }
+        config.validate()?;
+        let rays = train_rays(&dataset)?;
+        let trainer = Trainer::from_parts(config, r.model, r.opt, r.state.iter, r.history, rays);
+        Ok(Self::assemble(dataset, trainer))
+    }
+
+    fn assemble(dataset: Dataset, trainer: Trainer) -> Session {
+        let eval_views = dataset.indices(eval_split(&dataset));
+        Session {
+            data_key: data_key(&dataset),
+            dataset,
+            trainer,
+            eval_views,
+            evals: vec![],
+        }
+    }
+
+    pub fn save_checkpoint(&self, path: &Path) -> Result<()> {
+        let t = &self.trainer;
+        checkpoint::save(path, &t.config, &t.model, &t.opt, t.iter, &t.history, &self.data_key)
+    }
+
+    /// Mean PSNR of up to `max_views` held-out views (spread over the list)
+    /// rendered with the training forward pass; `None` without held-out views.
+    pub fn quick_eval(&self, max_views: usize) -> Option<f32> {
+        if self.eval_views.is_empty() || max_views == 0 {
+            return None;
+        }
+        let n = self.eval_views.len();
+        let pick: Vec<usize> = (0..max_views.min(n)).map(|k| self.eval_views[k * n / max_views.min(n)]).collect();
+        let mut se = 0.0f64;
+        let mut count = 0usize;
+        for i in pick {
+            let cam = &self.dataset.cameras.frames[i].camera;
+            let img = &self.dataset.images[i];
+            let rays = pixel_rays(cam);
+            let (out, _) = self.trainer.render_rays(&rays, false);
+            for (k, o) in out.iter().enumerate() {
+                let t = Vec3::from(img.pixel(k as u32 % img.width, k as u32 / img.width));
+                se += (o.color - t).length_squared() as f64;
+            }
+            count += out.len() * 3;
+        }
+        Some(psnr_of((se / count.max(1) as f64) as f32))
+    }
+
+    /// PSNR of every held-out view rendered by the reference renderer from
+    /// `field` (what `isrf render` would produce) with the dataset background.
+    pub fn final_eval(&self, field: Arc<Field>) -> Result<Option<EvalReport>> {
+        if self.eval_views.is_empty() {
+            return Ok(None);
+        }
+        let mut scene = Scene::single(field);
+        scene.background = Vec3::from(self.dataset.background);
+        let opts = RenderOptions {
+            depth: false,
+            ..Default::default()
+        };
+        let mut views = vec![];
+        let mut psnr = vec![];
+        for &i in &self.eval_views {
+            let f = &self.dataset.cameras.frames[i];
+            let img = &self.dataset.images[i];
+            let frame = render(&scene, &f.camera, &opts)?;
+            let truth: Vec<Vec3> = img.rgb.chunks_exact(3).map(|c| Vec3::new(c[0], c[1], c[2])).collect();
+            views.push(f.name.clone());
+            psnr.push(crate::eval::metrics::psnr(&frame.out.color, &truth));
+        }
+        let mean_psnr = psnr.iter().sum::<f64>() / psnr.len() as f64;
+        let i0 = self.eval_views[0];
+        Ok(Some(EvalReport {
+            views,
+            psnr,
+            mean_psnr,
+            width: self.dataset.images[i0].width,
+            height: self.dataset.images[i0].height,
+        }))
+    }
+
+    /// The held-out cameras as a camera set (NDC included), for `isrf render`.
+    pub fn eval_cameras(&self) -> CameraSet {
+        CameraSet {
+            frames: self.eval_views.iter().map(|&i| self.dataset.cameras.frames[i].clone()).collect(),
+        }
+    }
+
+    pub fn model(&self) -> &Model {
+        &self.trainer.model
+    }
+}
+
+/// Rays through every pixel centre of a camera, row-major.
+pub fn pixel_rays(cam: &Camera) -> Vec<crate::camera::Ray> {
+    let k = cam.intrinsics;
+    (0..k.height)
+        .flat_map(|y| (0..k.width).map(move |x| cam.pixel_ray(x, y)))
+        .collect()
+}
