@@ -1,6 +1,7 @@
 //! Camera sets from every capture format: transforms.json (Blender and
 //! nerfstudio), LLFF poses_bounds.npy, COLMAP; conventions, NDC, errors.
 
+mod common;
 use glam::{Affine3A, Mat3, Quat, Vec2, Vec3};
 use isrf::camera::{colmap, llff, Camera, CameraFrame, CameraSet, Intrinsics, Ndc, Ray};
 use std::path::{Path, PathBuf};
@@ -447,24 +448,10 @@ fn transforms_errors() {
 
 // ------------------------------------------------------------ LLFF
 
-/// A minimal .npy writer (version 1.0, little-endian float64, C order).
+/// A little-endian float64 `.npy`.
 fn write_npy(path: &Path, shape: &[usize], data: &[f64]) {
-    let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
-    let shape = if dims.len() == 1 {
-        format!("({},)", dims[0])
-    } else {
-        format!("({})", dims.join(", "))
-    };
-    let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
-    bytes.extend((header.len() as u16).to_le_bytes());
-    bytes.extend(header.as_bytes());
-    data.iter().for_each(|v| bytes.extend(v.to_le_bytes()));
-    std::fs::write(path, bytes).unwrap();
+    let payload: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+    common::write_npy(path, shape, "<f8", &payload);
 }
 
 /// One poses_bounds row for an OpenGL camera-to-world pose.

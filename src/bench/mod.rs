@@ -5,9 +5,11 @@
 //! - [`render`]: rays per second of the CPU reference renderer.
 //! - [`segment`]: per-stage times of stroke → mask against the dense
 //!   reference implementation, with an identity check of the outputs.
+//! - [`train`]: trainer throughput per stage and phase.
 
 pub mod render;
 pub mod segment;
+pub mod train;
 
 use std::fmt;
 use std::time::Instant;

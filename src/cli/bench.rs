@@ -20,6 +20,28 @@ pub enum What {
     Segment(SegmentArgs),
     /// Frames per second of the editor's GPU view (needs the `editor` feature).
     Editor(super::edit::BenchArgs),
+    /// Rays/s and iterations/s of the trainer (a dataset, or a rendered demo capture).
+    Train(TrainArgs),
+}
+
+#[derive(clap::Args)]
+pub struct TrainArgs {
+    /// Dataset to train on (default: a capture rendered from the tabletop demo,
+    /// with its rendered features as the teacher).
+    #[arg(long)]
+    pub dataset: Option<std::path::PathBuf>,
+    /// Downscale the dataset's images by N.
+    #[arg(long, default_value_t = 4)]
+    pub downscale: u32,
+    /// Radiance iterations (the preset's coarse-to-fine schedule, compressed).
+    #[arg(long, default_value_t = 300)]
+    pub iters: usize,
+    /// Distillation iterations (demo capture only).
+    #[arg(long, default_value_t = 100)]
+    pub feature_iters: usize,
+    /// Final grid resolution (default: the preset's).
+    #[arg(long)]
+    pub res: Option<usize>,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -27,6 +49,7 @@ pub fn run(a: Args) -> Result<()> {
         What::Render(a) => run_render(a),
         What::Segment(a) => run_segment(a),
         What::Editor(a) => super::edit::bench(a),
+        What::Train(a) => run_train(a),
     }
 }
 
@@ -145,5 +168,62 @@ fn run_segment(a: SegmentArgs) -> Result<()> {
         r.config.res,
         r.stroke_to_mask_ms()
     );
+    Ok(())
+}
+
+fn run_train(a: TrainArgs) -> Result<()> {
+    use isrf::bench::train::{demo_capture, demo_trainer, run_and_measure, stage_table, totals};
+    use isrf::data::{Dataset, LoadOptions};
+    use isrf::train::{preset, Session};
+    if a.iters == 0 {
+        bail!("--iters must be at least 1");
+    }
+    let threads = rayon::current_num_threads();
+    let (what, mut trainer) = match &a.dataset {
+        Some(path) => {
+            let kind = Dataset::detect(path)?;
+            let mut config = preset(kind);
+            config.iters = a.iters;
+            if let Some(r) = a.res {
+                config.res = r;
+                config.coarse_res = config.coarse_res.min(r);
+            }
+            config.validate()?;
+            let opts = LoadOptions {
+                downscale: a.downscale,
+                ..Default::default()
+            };
+            let ds = Dataset::load(path, &opts)?;
+            let what = format!("{} ({:?}, downscale {})", path.display(), kind, a.downscale);
+            (what, Session::new(ds, config)?.trainer)
+        }
+        None => {
+            eprintln!("rendering a 40-view 200x150 capture of the tabletop demo ...");
+            let capture = demo_capture("tabletop", 96, 40, 200)?;
+            let config = isrf::train::TrainConfig {
+                iters: a.iters,
+                feature_iters: a.feature_iters,
+                res: a.res.unwrap_or(96),
+                coarse_res: 48.min(a.res.unwrap_or(96)),
+                feature_res: 48,
+                ..Default::default()
+            };
+            config.validate()?;
+            ("tabletop demo capture, 40 views at 200x150".to_string(), demo_trainer(&capture, config)?)
+        }
+    };
+    println!("trainer throughput on {what}, {threads} rayon threads, batch {}", trainer.config.batch);
+    let rows = run_and_measure(&mut trainer, |_| ())?;
+    print!("{}", stage_table(&rows));
+    if let Some(l) = isrf::bench::load_average() {
+        println!("load average {l:.2}: wall times include waiting for other processes");
+    }
+    let (fi, fr, fs) = totals(&rows, Some("features"));
+    if fi > 0 {
+        println!("distillation: {:.0} rays/s, {:.2} it/s", fr as f64 / fs, fi as f64 / fs);
+    }
+    let (i, r, s) = totals(&rows, Some("radiance"));
+    println!("it/s: {:.2}", i as f64 / s.max(1e-9));
+    println!("rays/s: {:.0}", r as f64 / s.max(1e-9));
     Ok(())
 }

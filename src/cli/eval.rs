@@ -37,6 +37,13 @@ pub struct Args {
     pub reference_view: Option<String>,
     #[arg(long)]
     pub target_view: Option<String>,
+    /// Dataset with true alpha (NeRF-synthetic): score `--object`, a bitmap
+    /// of `--field`, against the alpha of its val views.
+    #[arg(long, requires_all = ["field", "object"])]
+    pub alpha: Option<PathBuf>,
+    /// Object bitmap (from `isrf segment`) for --alpha.
+    #[arg(long)]
+    pub object: Option<PathBuf>,
     #[command(flatten)]
     pub params: super::segment::ParamArgs,
 }
@@ -45,6 +52,9 @@ pub fn run(a: Args) -> Result<()> {
     let params = a.params.params()?;
     if a.downscale == 0 {
         bail!("--downscale must be at least 1");
+    }
+    if let Some(ds) = &a.alpha {
+        return run_alpha(&a, ds);
     }
     if let Some(root) = &a.nvos {
         let field = Arc::new(Field::load(a.field.as_ref().unwrap())?);
@@ -82,6 +92,38 @@ pub fn run(a: Args) -> Result<()> {
         return Ok(());
     }
     let r = evaluate_demo(&scene, &params, a.downscale)?;
+    println!("{}", serde_json::to_string_pretty(&r)?);
+    Ok(())
+}
+
+/// `--alpha DATASET`: object masks against the val views' alpha, rendered at
+/// the dataset's resolution divided by `--downscale`.
+fn run_alpha(a: &Args, dataset: &std::path::Path) -> Result<()> {
+    use isrf::data::{Dataset, LoadOptions, Split};
+    let field = Arc::new(Field::load(a.field.as_ref().expect("clap requires --field"))?);
+    let object = a.object.as_ref().expect("clap requires --object");
+    let (bits, name) = isrf::segment::bitmap_file::load_bitmap(object)?;
+    let opts = LoadOptions {
+        downscale: a.downscale,
+        splits: Some(vec![Split::Val]),
+        ..Default::default()
+    };
+    let ds = Dataset::load(dataset, &opts)?;
+    let mut views = vec![];
+    for i in ds.indices(Split::Val) {
+        let Some(alpha) = ds.images[i].alpha.as_deref() else {
+            bail!("{}: view {} has no alpha channel", dataset.display(), ds.cameras.frames[i].name);
+        };
+        views.push((ds.cameras.frames[i].camera, alpha, ds.cameras.frames[i].name.clone()));
+    }
+    let r = isrf::eval::protocol::evaluate_alpha(field, Arc::new(bits), &views)?;
+    eprintln!(
+        "object '{name}' vs alpha of {} val views: mean IoU {:.3}, min {:.3}, accuracy {:.3}",
+        r.views.len(),
+        r.mean_iou,
+        r.min_iou,
+        r.accuracy
+    );
     println!("{}", serde_json::to_string_pretty(&r)?);
     Ok(())
 }

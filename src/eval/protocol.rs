@@ -348,3 +348,56 @@ pub fn evaluate_nvos(
         voxels: mask.count(),
     })
 }
+
+/// IoU of a segmented object's rendered mask with the true foreground
+/// alpha of held-out views (NeRF-synthetic scenes have exact alpha).
+#[derive(Clone, Debug, Serialize)]
+pub struct AlphaReport {
+    pub views: Vec<String>,
+    pub iou: Vec<f64>,
+    pub mean_iou: f64,
+    pub min_iou: f64,
+    pub accuracy: f64,
+}
+
+/// Renders the object opacity of `object` (a bitmap of `field`) from every
+/// view in `views` (camera, alpha, name) and scores `opacity > 0.5` against
+/// `alpha > 0.5`.
+pub fn evaluate_alpha(field: Arc<Field>, object: Arc<Bitmap>, views: &[(Camera, &[f32], String)]) -> Result<AlphaReport> {
+    crate::ensure!(!views.is_empty(), "no views with alpha to evaluate on");
+    crate::ensure!(
+        object.res() == field.res(),
+        "object bitmap {:?} does not match the field's grid {:?}",
+        object.res(),
+        field.res()
+    );
+    let scene = Scene::single(field);
+    let opts = RenderOptions {
+        probes: vec![Probe { layer: 0, mask: object }],
+        depth: false,
+        ..Default::default()
+    };
+    let (mut iou, mut acc) = (vec![], 0.0);
+    for (cam, alpha, _) in views {
+        let f = render(&scene, cam, &opts)?;
+        crate::ensure!(
+            alpha.len() == f.out.probe_opacity.len(),
+            "alpha has {} pixels, the camera {}",
+            alpha.len(),
+            f.out.probe_opacity.len()
+        );
+        let pred: Vec<bool> = f.out.probe_opacity.iter().map(|&v| v > 0.5).collect();
+        let gt: Vec<bool> = alpha.iter().map(|&v| v > 0.5).collect();
+        let c = Confusion::of(&pred, &gt);
+        iou.push(c.iou());
+        acc += c.accuracy();
+    }
+    let n = iou.len() as f64;
+    Ok(AlphaReport {
+        views: views.iter().map(|v| v.2.clone()).collect(),
+        mean_iou: iou.iter().sum::<f64>() / n,
+        min_iou: iou.iter().copied().fold(f64::INFINITY, f64::min),
+        accuracy: acc / n,
+        iou,
+    })
+}

@@ -2,7 +2,7 @@
 //! negative, for a named object. Read from JSON documents or NVOS-style
 //! scribble PNGs; turned into unit-length rendered features.
 
-use crate::camera::{Camera, Intrinsics};
+use crate::camera::{Camera, CameraSet, Intrinsics};
 use crate::ensure;
 use crate::error::{Error, Result};
 use crate::render::{render_rays, RenderOptions, Scene};
@@ -143,6 +143,10 @@ pub struct CameraDoc {
     pub h: Option<u32>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera_angle_x: Option<f32>,
+    /// The NDC space of a forward-facing capture (as in camera sets), when
+    /// the field was trained in it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ndc: Option<crate::camera::Ndc>,
 }
 
 impl CameraDoc {
@@ -156,6 +160,7 @@ impl CameraDoc {
             cy: Some(k.cy),
             w: Some(k.width),
             h: Some(k.height),
+            ndc: c.ndc,
             ..Default::default()
         }
     }
@@ -203,7 +208,10 @@ impl CameraDoc {
             k.fx.is_finite() && k.fx > 0.0 && k.fy.is_finite() && k.fy > 0.0,
             "stroke camera focal length must be positive"
         );
-        Ok(Camera::new(k, c2w))
+        if let Some(ndc) = &self.ndc {
+            ndc.validate()?;
+        }
+        Ok(Camera::new(k, c2w).with_ndc(self.ndc))
     }
 }
 
@@ -238,8 +246,13 @@ impl StrokeDoc {
         }
     }
     pub fn to_stroke(&self) -> Result<Stroke> {
+        self.to_stroke_on(self.camera.to_camera()?)
+    }
+
+    /// The stroke drawn on `camera` (the document's own camera ignored).
+    pub fn to_stroke_on(&self, camera: Camera) -> Result<Stroke> {
         Ok(Stroke {
-            camera: self.camera.to_camera()?,
+            camera,
             points: self.points.iter().map(|&p| Vec2::from(p)).collect(),
             radius: self.radius,
             polarity: self.polarity,
@@ -260,11 +273,21 @@ enum StrokeFile {
 
 /// Reads strokes from a JSON file; every error names the file (and stroke).
 pub fn load_strokes(path: &Path) -> Result<Vec<Stroke>> {
+    load_strokes_on(path, None)
+}
+
+/// Like [`load_strokes`]; a stroke whose camera is only a `file_path` takes
+/// that frame's camera from `cameras` (e.g. a dataset's camera set).
+pub fn load_strokes_on(path: &Path, cameras: Option<&CameraSet>) -> Result<Vec<Stroke>> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    parse_strokes(&text).map_err(|e| Error::bad_file(path, e.to_string()))
+    parse_strokes_on(&text, cameras).map_err(|e| Error::bad_file(path, e.to_string()))
 }
 
 pub fn parse_strokes(text: &str) -> Result<Vec<Stroke>> {
+    parse_strokes_on(text, None)
+}
+
+pub fn parse_strokes_on(text: &str, cameras: Option<&CameraSet>) -> Result<Vec<Stroke>> {
     // Try the single-stroke form first for the most specific error message.
     let docs = match serde_json::from_str::<StrokeFile>(text) {
         Ok(StrokeFile::One(d)) => vec![d],
@@ -280,8 +303,43 @@ pub fn parse_strokes(text: &str) -> Result<Vec<Stroke>> {
     ensure!(!docs.is_empty(), "the stroke document holds no strokes");
     docs.iter()
         .enumerate()
-        .map(|(i, d)| d.to_stroke().map_err(|e| Error::invalid(format!("stroke {i}: {e}"))))
+        .map(|(i, d)| {
+            let named = d.camera.transform_matrix.is_none() && d.camera.file_path.is_some();
+            let stroke = match (named, cameras) {
+                (true, Some(set)) => d.to_stroke_on(frame_camera(set, &d.camera)?),
+                _ => d.to_stroke(),
+            };
+            stroke.map_err(|e| Error::invalid(format!("stroke {i}: {e}")))
+        })
         .collect()
+}
+
+/// The camera of the frame of `set` that `doc.file_path` names (full name
+/// or base name); the document's `w`/`h`, if given, must match it.
+fn frame_camera(set: &CameraSet, doc: &CameraDoc) -> Result<Camera> {
+    let want = doc.file_path.as_deref().unwrap_or_default();
+    let base = |n: &str| {
+        let n = n.rsplit('/').next().unwrap_or(n);
+        n.rsplit_once('.').map_or(n, |(b, _)| b).to_string()
+    };
+    let frame = set
+        .frames
+        .iter()
+        .find(|f| f.name == want || f.base_name() == base(want))
+        .ok_or_else(|| {
+            let names: Vec<String> = set.frames.iter().take(6).map(|f| f.base_name()).collect();
+            Error::invalid(format!("no camera named '{want}' in the camera set (it has {}, ...)", names.join(", ")))
+        })?;
+    let k = frame.camera.intrinsics;
+    if let (Some(w), Some(h)) = (doc.w, doc.h) {
+        ensure!(
+            (w, h) == (k.width, k.height),
+            "stroke is drawn on a {w}x{h} image but camera '{want}' is {}x{}",
+            k.width,
+            k.height
+        );
+    }
+    Ok(frame.camera)
 }
 
 /// A scribble PNG (NVOS style: any non-zero pixel is stroked) on `camera`.

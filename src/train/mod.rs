@@ -15,12 +15,14 @@ pub mod optim;
 pub mod plot;
 pub mod rays;
 pub mod session;
+pub mod pca;
 pub mod teacher;
 pub mod trainer;
+pub mod vit;
 
 pub use march::{GradBuf, MarchOpts, RayOut, Scratch};
 pub use model::{DenseGrid, Model};
 pub use rays::{default_bounds, RaySet};
 pub use session::{preset, EvalReport, Session};
-pub use teacher::{FeatureMap, FeatureMaps};
+pub use teacher::{default_cache_dir, teacher_features, FeatureMap, FeatureMaps, TeacherReport, TeacherSource};
 pub use trainer::{psnr_of, step_of, StepStats, TrainConfig, Trainer};

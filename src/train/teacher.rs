@@ -2,7 +2,10 @@
 //! training view (a ViT's patch tokens after PCA), sampled bilinearly at a
 //! pixel to give the target of the distillation loss.
 
+use crate::data::Image;
+use crate::error::Error;
 use crate::{ensure, Result};
+use std::path::{Path, PathBuf};
 
 /// One view's map: `height × width × channels`, row-major, channels last,
 /// covering the whole image (map cell centres at (j + ½)/width of its width).
@@ -59,5 +62,336 @@ impl FeatureMaps {
         for k in 0..c {
             out[k] = (1.0 - fy) * ((1.0 - fx) * a[k] + fx * b[k]) + fy * ((1.0 - fx) * d[k] + fx * e[k]);
         }
+    }
+}
+
+/// Where teacher features come from.
+#[derive(Clone, Debug, PartialEq)]
+pub enum TeacherSource {
+    /// An ONNX ViT run on every training image ([`super::vit`]).
+    Onnx { path: PathBuf, output: String, size: u32 },
+    /// A folder of precomputed maps, one `.npy` / `.npz` per image named
+    /// after it (`r_0.npy` or `r_0.png.npy`), `[h, w, C]` or `[C, h, w]`
+    /// (the larger of the first and last sizes is the channel axis), f32 or
+    /// f16, an optional leading 1.
+    Precomputed(PathBuf),
+}
+
+impl TeacherSource {
+    /// A folder means precomputed maps, a file an ONNX model.
+    pub fn from_path(path: &Path, output: &str, size: u32) -> Result<TeacherSource> {
+        if path.is_dir() {
+            Ok(TeacherSource::Precomputed(path.to_path_buf()))
+        } else if path.is_file() {
+            Ok(TeacherSource::Onnx {
+                path: path.to_path_buf(),
+                output: output.to_string(),
+                size,
+            })
+        } else {
+            Err(Error::bad_file(path, "teacher not found (expected an .onnx file or a folder of .npy/.npz maps)"))
+        }
+    }
+
+    fn describe(&self) -> String {
+        match self {
+            TeacherSource::Onnx { path, output, size } => {
+                let (len, modified) = file_stamp(path);
+                format!("onnx {} ({len} bytes, modified {modified}) output {output} size {size}", path.display())
+            }
+            TeacherSource::Precomputed(dir) => format!("precomputed {}", dir.display()),
+        }
+    }
+}
+
+fn file_stamp(path: &Path) -> (u64, u64) {
+    let m = std::fs::metadata(path).ok();
+    let len = m.as_ref().map_or(0, |m| m.len());
+    let modified = m
+        .and_then(|m| m.modified().ok())
+        .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+        .map_or(0, |d| d.as_secs());
+    (len, modified)
+}
+
+/// What [`teacher_features`] did, for the user.
+#[derive(Clone, Debug)]
+pub struct TeacherReport {
+    pub source: String,
+    pub raw_channels: usize,
+    pub channels: usize,
+    /// Variance explained by the kept PCA components.
+    pub explained: f32,
+    pub map_size: [usize; 2],
+    pub cached: Option<PathBuf>,
+    pub from_cache: bool,
+    pub seconds: f64,
+}
+
+/// Teacher features of `images` (the training views, in order; `paths` name
+/// them for precomputed maps), reduced by PCA to `dims` channels fitted over
+/// all of them. With a cache folder the result is stored under a key of the
+/// teacher, the settings and the image contents, and reused when they match.
+pub fn teacher_features(
+    source: &TeacherSource,
+    images: &[&Image],
+    paths: &[PathBuf],
+    dims: usize,
+    cache_dir: Option<&Path>,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<(FeatureMaps, TeacherReport)> {
+    ensure!(!images.is_empty() && images.len() == paths.len(), "teacher: no images");
+    let t0 = std::time::Instant::now();
+    let key = cache_key(source, images, dims);
+    let cache_file = cache_dir.map(|d| d.join(format!("{:016x}.safetensors", fnv(key.as_bytes()))));
+    let mut report = TeacherReport {
+        source: source.describe(),
+        raw_channels: 0,
+        channels: dims,
+        explained: 1.0,
+        map_size: [0, 0],
+        cached: cache_file.clone(),
+        from_cache: false,
+        seconds: 0.0,
+    };
+    if let Some(maps) = cache_file.as_deref().and_then(|f| cache::load(f, &key).ok()) {
+        report.from_cache = true;
+        report.map_size = [maps.maps[0].width, maps.maps[0].height];
+        report.seconds = t0.elapsed().as_secs_f64();
+        return Ok((maps, report));
+    }
+    let raw = match source {
+        TeacherSource::Onnx { path, output, size } => {
+            let vit = super::vit::Vit::load(path, output, *size)?;
+            let mut maps = Vec::with_capacity(images.len());
+            for (i, img) in images.iter().enumerate() {
+                maps.push(vit.run(img)?);
+                progress(i + 1, images.len());
+            }
+            maps
+        }
+        TeacherSource::Precomputed(dir) => precomputed(dir, images, paths)?,
+    };
+    let raw_c = raw[0].data.len() / (raw[0].width * raw[0].height);
+    ensure!(
+        dims <= raw_c,
+        "the teacher gives {raw_c} channels, fewer than the {dims} asked for"
+    );
+    let all: Vec<f32> = raw.iter().flat_map(|m| m.data.iter().copied()).collect();
+    let pca = super::pca::Pca::fit(&all, raw_c, dims)?;
+    let maps: Vec<FeatureMap> = raw
+        .into_iter()
+        .map(|m| FeatureMap {
+            data: pca.project_all(&m.data),
+            ..m
+        })
+        .collect();
+    let maps = FeatureMaps::new(dims, maps)?;
+    report.raw_channels = raw_c;
+    report.explained = pca.explained;
+    report.map_size = [maps.maps[0].width, maps.maps[0].height];
+    if let Some(f) = &cache_file {
+        // A cache that cannot be written is not an error: the features are
+        // simply recomputed next time.
+        if let Err(e) = cache::save(f, &key, &maps) {
+            eprintln!("note: teacher feature cache not written: {e}");
+            report.cached = None;
+        }
+    }
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok((maps, report))
+}
+
+/// The per-user cache folder for teacher features: `$ISRF_CACHE`, else
+/// `$XDG_CACHE_HOME/isrf`, else `~/.cache/isrf`.
+pub fn default_cache_dir() -> Option<PathBuf> {
+    let base = if let Some(d) = std::env::var_os("ISRF_CACHE") {
+        PathBuf::from(d)
+    } else if let Some(d) = std::env::var_os("XDG_CACHE_HOME") {
+        PathBuf::from(d).join("isrf")
+    } else {
+        PathBuf::from(std::env::var_os("HOME")?).join(".cache/isrf")
+    };
+    Some(base.join("teacher"))
+}
+
+/// The teacher, the PCA size and every image's size and pixels (CRC32).
+fn cache_key(source: &TeacherSource, images: &[&Image], dims: usize) -> String {
+    let mut k = format!("{} dims {dims} images {}", source.describe(), images.len());
+    for img in images {
+        let crc = crc32fast::hash(bytemuck::cast_slice(&img.rgb));
+        k.push_str(&format!(" {}x{}:{crc:08x}", img.width, img.height));
+    }
+    k
+}
+
+/// 64-bit FNV-1a: a short stable file name for a long key.
+fn fnv(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3))
+}
+
+/// Reads the precomputed map of every image from `dir`.
+fn precomputed(dir: &Path, images: &[&Image], paths: &[PathBuf]) -> Result<Vec<FeatureMap>> {
+    let mut maps = Vec::with_capacity(images.len());
+    for (img, p) in images.iter().zip(paths) {
+        let name = p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let stem = p.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let file = [&stem, &name]
+            .iter()
+            .flat_map(|b| [dir.join(format!("{b}.npy")), dir.join(format!("{b}.npz"))])
+            .find(|f| f.is_file())
+            .ok_or_else(|| Error::bad_file(dir, format!("no {stem}.npy or {stem}.npz for image {}", p.display())))?;
+        let (shape, data) = npy::read(&file)?;
+        let (w, h, c, data) = npy::to_hwc(&shape, data).map_err(|r| Error::bad_file(&file, r))?;
+        if let Some(m) = maps.first() {
+            let m: &FeatureMap = m;
+            let c0 = m.data.len() / (m.width * m.height);
+            if c != c0 {
+                return Err(Error::bad_file(&file, format!("{c} channels, but the first map has {c0}")));
+            }
+        }
+        maps.push(FeatureMap {
+            width: w,
+            height: h,
+            image_width: img.width,
+            image_height: img.height,
+            data,
+        });
+    }
+    Ok(maps)
+}
+
+mod npy {
+    use crate::error::{Error, Result};
+    use std::path::Path;
+
+    /// Shape and values (as f32) of a `.npy`, or of the first array of a `.npz`.
+    pub fn read(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
+        let bad = |e: std::io::Error| Error::bad_file(path, format!("not a readable array: {e}"));
+        let is_npz = path.extension().is_some_and(|e| e == "npz");
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        if is_npz {
+            let mut z = npyz::npz::NpzArchive::new(std::io::Cursor::new(&bytes)).map_err(bad)?;
+            let name = z
+                .array_names()
+                .next()
+                .map(str::to_string)
+                .ok_or_else(|| Error::bad_file(path, "the archive holds no array"))?;
+            let npy = z.by_name(&name).map_err(bad)?.ok_or_else(|| Error::bad_file(path, "array vanished"))?;
+            values(npy, path)
+        } else {
+            values(npyz::NpyFile::new(&bytes[..]).map_err(bad)?, path)
+        }
+    }
+
+    fn values<R: std::io::Read>(npy: npyz::NpyFile<R>, path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
+        if npy.order() != npyz::Order::C {
+            return Err(Error::bad_file(path, "Fortran-ordered arrays are not supported; save with C order"));
+        }
+        let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
+        let type_str = npy.dtype().descr();
+        let data: Vec<f32> = match type_str.trim_matches('\'').trim_start_matches(['<', '>', '|', '=']) {
+            "f4" => npy.into_vec::<f32>(),
+            "f2" => npy.into_vec::<half::f16>().map(|v| v.into_iter().map(f32::from).collect()),
+            "f8" => npy.into_vec::<f64>().map(|v| v.into_iter().map(|x| x as f32).collect()),
+            other => return Err(Error::bad_file(path, format!("dtype {other} is not a float type"))),
+        }
+        .map_err(|e| Error::bad_file(path, format!("truncated or corrupt data: {e}")))?;
+        if data.len() != shape.iter().product::<usize>() || data.iter().any(|v| !v.is_finite()) {
+            return Err(Error::bad_file(path, "values do not match the shape or are not finite"));
+        }
+        Ok((shape, data))
+    }
+
+    /// `[h, w, C]` / `[C, h, w]` (optionally with a leading 1) to
+    /// channels-last `(w, h, C, data)`.
+    pub fn to_hwc(shape: &[usize], data: Vec<f32>) -> std::result::Result<(usize, usize, usize, Vec<f32>), String> {
+        let s: &[usize] = if shape.len() == 4 && shape[0] == 1 { &shape[1..] } else { shape };
+        let &[a, b, c] = s else {
+            return Err(format!("shape {shape:?} is not [h, w, C] or [C, h, w]"));
+        };
+        if a == 0 || b == 0 || c == 0 {
+            return Err(format!("empty map {shape:?}"));
+        }
+        if c >= a {
+            return Ok((b, a, c, data));
+        }
+        // [C, h, w] → channels last.
+        let mut out = vec![0.0; a * b * c];
+        for k in 0..a {
+            for i in 0..b * c {
+                out[i * a + k] = data[k * b * c + i];
+            }
+        }
+        Ok((c, b, a, out))
+    }
+}
+
+mod cache {
+    use super::{FeatureMap, FeatureMaps};
+    use crate::error::{write_atomic, Error, Result};
+    use crate::field::io::{check_format, parse, read_all, read_metadata, serialize, Tensors};
+    use safetensors::Dtype;
+    use std::collections::HashMap;
+    use std::path::Path;
+
+    const FORMAT: &str = "isrf-teacher";
+    const VERSION: u32 = 1;
+
+    pub fn save(path: &Path, key: &str, maps: &FeatureMaps) -> Result<()> {
+        if let Some(d) = path.parent() {
+            std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
+        }
+        let c = maps.channels;
+        let mut names = vec![];
+        let mut tensors = vec![];
+        let mut sizes = vec![];
+        for (i, m) in maps.maps.iter().enumerate() {
+            names.push(format!("map.{i:05}"));
+            tensors.push((Dtype::F32, vec![m.height, m.width, c], bytemuck::cast_slice(&m.data).to_vec()));
+            sizes.push([m.image_width, m.image_height]);
+        }
+        let mut meta = HashMap::new();
+        meta.insert("format".into(), FORMAT.into());
+        meta.insert("version".into(), VERSION.to_string());
+        meta.insert("key".into(), key.into());
+        meta.insert("channels".into(), c.to_string());
+        meta.insert("image_sizes".into(), serde_json::to_string(&sizes).expect("sizes serialise"));
+        write_atomic(path, &serialize(&names, &tensors, meta)?)
+    }
+
+    pub fn load(path: &Path, key: &str) -> Result<FeatureMaps> {
+        let (meta, _) = read_metadata(path)?;
+        check_format(&meta, FORMAT, VERSION, path)?;
+        let bad = |r: &str| Error::bad_file(path, r.to_string());
+        if meta.get("key").map(String::as_str) != Some(key) {
+            return Err(bad("cached for other images or another teacher"));
+        }
+        let c: usize = meta.get("channels").and_then(|v| v.parse().ok()).ok_or_else(|| bad("no channel count"))?;
+        let sizes: Vec<[u32; 2]> = meta
+            .get("image_sizes")
+            .and_then(|s| serde_json::from_str(s).ok())
+            .ok_or_else(|| bad("no image sizes"))?;
+        let bytes = read_all(path)?;
+        let t = Tensors {
+            st: parse(&bytes, path)?,
+            path,
+        };
+        let mut maps = Vec::with_capacity(sizes.len());
+        for (i, [iw, ih]) in sizes.into_iter().enumerate() {
+            let name = format!("map.{i:05}");
+            let shape = t.st.tensor(&name).map_err(|_| bad("missing map"))?.shape().to_vec();
+            let &[h, w, _] = shape.as_slice() else {
+                return Err(bad("map is not 3-D"));
+            };
+            maps.push(FeatureMap {
+                width: w,
+                height: h,
+                image_width: iw,
+                image_height: ih,
+                data: t.f32(&name, &[h, w, c])?,
+            });
+        }
+        FeatureMaps::new(c, maps)
     }
 }
