@@ -6,12 +6,11 @@ use std::path::PathBuf;
 
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    // The I/O error is part of the message, not a `#[source]` (thiserror
+    // would make a field named `source` one): the CLI prints the chain,
+    // which would repeat it.
+    #[error("{path}: {error}")]
+    Io { path: PathBuf, error: std::io::Error },
     /// A file that exists but whose contents are not what we expect.
     #[error("{path}: {reason}")]
     BadFile { path: PathBuf, reason: String },
@@ -26,7 +25,7 @@ impl Error {
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io {
             path: path.into(),
-            source,
+            error: source,
         }
     }
     pub fn bad_file(path: impl Into<PathBuf>, reason: impl Into<String>) -> Self {

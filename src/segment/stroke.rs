@@ -331,15 +331,19 @@ fn frame_camera(set: &CameraSet, doc: &CameraDoc) -> Result<Camera> {
             Error::invalid(format!("no camera named '{want}' in the camera set (it has {}, ...)", names.join(", ")))
         })?;
     let k = frame.camera.intrinsics;
-    if let (Some(w), Some(h)) = (doc.w, doc.h) {
-        ensure!(
-            (w, h) == (k.width, k.height),
-            "stroke is drawn on a {w}x{h} image but camera '{want}' is {}x{}",
-            k.width,
-            k.height
-        );
-    }
-    Ok(frame.camera)
+    let (Some(w), Some(h)) = (doc.w, doc.h) else {
+        return Ok(frame.camera);
+    };
+    // A stroke drawn on a downscaled copy of the image (e.g. training at
+    // --downscale 4 against the dataset's own transforms file).
+    let factor = if w > 0 { k.width / w } else { 0 };
+    ensure!(
+        factor >= 1 && k.width == w * factor && frame.camera.downscaled(factor).intrinsics.height == h,
+        "stroke is drawn on a {w}x{h} image but camera '{want}' is {}x{} (not an integer multiple)",
+        k.width,
+        k.height
+    );
+    Ok(frame.camera.downscaled(factor))
 }
 
 /// A scribble PNG (NVOS style: any non-zero pixel is stroked) on `camera`.
