@@ -213,7 +213,9 @@ pub fn sync_scene(
     es: Res<EditorSession>,
     objects: Query<(&SessionName, &ObjectLayer, &Transform, Has<Selected>)>,
     fields: Query<(&SessionName, &FieldLayer, Has<Selected>)>,
-    changed: Query<(), Or<(Changed<Transform>, Changed<ObjectLayer>, Added<Selected>)>>,
+    // Without the camera: its Transform is written below (and orbiting
+    // must not rebuild the scene).
+    changed: Query<(), (Or<(Changed<Transform>, Changed<ObjectLayer>, Added<Selected>)>, Without<EditorCamera>)>,
     removed_sel: RemovedComponents<Selected>,
     mut cams: Query<(&mut Transform, &mut Projection, &mut PanOrbitCamera), (With<EditorCamera>, Without<ObjectLayer>)>,
 ) {

@@ -25,9 +25,9 @@ use bevy::render::extract_resource::{ExtractResource, ExtractResourcePlugin};
 use bevy::render::render_resource::binding_types::{storage_buffer_read_only_sized, uniform_buffer_sized};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor,
-    BufferUsages, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction, DepthStencilState,
-    FragmentState, MultisampleState, PipelineCache, RenderPassDescriptor, RenderPipelineDescriptor, ShaderStages,
-    SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureFormat,
+    BufferUsages, CachedPipelineState, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction,
+    DepthStencilState, FragmentState, MultisampleState, PipelineCache, RenderPassDescriptor, RenderPipelineDescriptor,
+    ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureFormat,
 };
 use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue, ViewQuery};
 use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
@@ -109,10 +109,16 @@ pub struct RayMarchPlugin;
 
 impl Plugin for RayMarchPlugin {
     fn build(&self, app: &mut App) {
-        let shader = app.world_mut().resource_mut::<Assets<Shader>>().add(Shader::from_wgsl(
-            include_str!("../../../shaders/raymarch.wgsl"),
-            "shaders/raymarch.wgsl",
-        ));
+        // ISRF_RAYMARCH_WGSL=path loads the shader from a file instead of the
+        // built-in copy (for shader development without rebuilding).
+        let source = std::env::var("ISRF_RAYMARCH_WGSL")
+            .ok()
+            .and_then(|p| std::fs::read_to_string(p).ok())
+            .unwrap_or_else(|| include_str!("../../../shaders/raymarch.wgsl").to_string());
+        let shader = app
+            .world_mut()
+            .resource_mut::<Assets<Shader>>()
+            .add(Shader::from_wgsl(source, "shaders/raymarch.wgsl"));
         let status = SharedStatus::default();
         app.init_resource::<MarchScene>()
             .insert_resource(status.clone())
@@ -276,8 +282,8 @@ fn update_fields(
     device: &RenderDevice,
     status: &SharedStatus,
 ) -> crate::Result<()> {
-    let same = wanted.len() == cache.fields.len()
-        && wanted.iter().zip(&cache.fields).all(|(a, b)| Arc::ptr_eq(a, &b.field));
+    let same =
+        wanted.len() == cache.fields.len() && wanted.iter().zip(&cache.fields).all(|(a, b)| Arc::ptr_eq(a, &b.field));
     if same {
         return Ok(());
     }
@@ -499,6 +505,10 @@ fn raymarch_pass(
 ) {
     let (camera, target, depth, bind_group, pipeline_id) = view.into_inner();
     let Some(pipeline) = pipeline_cache.get_render_pipeline(pipeline_id.0) else {
+        if let CachedPipelineState::Err(e) = pipeline_cache.get_render_pipeline_state(pipeline_id.0) {
+            let msg = format!("the ray-marching shader failed to compile: {e}");
+            status.update(|s| s.error = Some(msg));
+        }
         return;
     };
     let color_attachments = [Some(target.get_color_attachment())];
