@@ -392,7 +392,12 @@ fn update_cache(
         cache.layer_buffer = Some(storage_buffer(device, "isrf_layers", bytes));
     }
     cache.layers = layers;
-    let step = march.step.unwrap_or_else(|| scene.default_step());
+    // An empty scene (nothing loaded yet) draws the background; any step will do.
+    let step = match march.step {
+        Some(s) => s,
+        None if scene.layers.is_empty() => 1.0,
+        None => scene.default_step(),
+    };
     crate::ensure!(
         step.is_finite() && step > 0.0,
         "render step must be positive, got {step}"
