@@ -434,6 +434,14 @@ pub fn keyboard_shortcuts(
     }
 }
 
+/// The object of the last `Stroke` among `requests`.
+fn last_stroked(requests: &[Request]) -> Option<String> {
+    requests.iter().rev().find_map(|r| match r {
+        Request::Apply(Command::Stroke { object, .. }) => Some(object.clone()),
+        _ => None,
+    })
+}
+
 /// Opens the editor window and runs until it is closed (or, with
 /// `screenshot`, until the screenshot is saved).
 pub fn run(opts: EditorOptions) -> Result<()> {
@@ -451,10 +459,17 @@ pub fn run(opts: EditorOptions) -> Result<()> {
     .add_plugins(bevy::diagnostic::FrameTimeDiagnosticsPlugin::default());
     let cwd = std::env::current_dir().map_err(|e| Error::io(".", e))?;
     let mut es = EditorSession::new(Session::new(cwd.clone(), cwd));
+    // The last object a start-up script strokes starts selected.
+    let state = EditorState {
+        pending_select: last_stroked(&requests),
+        ..default()
+    };
     for r in requests {
         es.push(r);
     }
-    app.insert_resource(es).add_plugins(EditorPlugin { ui: !opts.no_ui });
+    app.insert_resource(es)
+        .insert_resource(state)
+        .add_plugins(EditorPlugin { ui: !opts.no_ui });
     if let Some(path) = &opts.screenshot {
         app.add_plugins(capture::ScreenshotPlugin { path: path.clone() });
     }
