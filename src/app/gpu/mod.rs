@@ -284,7 +284,8 @@ fn update_fields(
 ) -> crate::Result<()> {
     let same =
         wanted.len() == cache.fields.len() && wanted.iter().zip(&cache.fields).all(|(a, b)| Arc::ptr_eq(a, &b.field));
-    if same {
+    // (An empty scene still needs its empty buffers, to draw the background.)
+    if same && cache.field_buffer.is_some() {
         return Ok(());
     }
     let t0 = Instant::now();
