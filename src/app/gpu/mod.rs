@@ -244,11 +244,13 @@ struct GpuSceneCache {
     ready: bool,
 }
 
-/// A storage buffer holding `data` (padded to 16 bytes: empty bindings are
-/// not allowed).
+/// A storage buffer holding `data`, padded to a multiple of 16 bytes and to
+/// at least 256: empty bindings are not allowed, and a runtime-sized array
+/// binding must hold one element (`Layer` is 144 bytes) even when the scene
+/// is empty.
 fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> Buffer {
     let mut bytes = data.to_vec();
-    bytes.resize(bytes.len().max(16).next_multiple_of(16), 0);
+    bytes.resize(bytes.len().max(256).next_multiple_of(16), 0);
     device.create_buffer_with_data(&BufferInitDescriptor {
         label: Some(label),
         contents: &bytes,
