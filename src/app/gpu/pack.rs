@@ -172,7 +172,9 @@ fn chebyshev(occ: &[bool], dims: [usize; 3]) -> Vec<u8> {
 /// RGB as 10-bit unorm (r in bits 0..10, g 10..20, b 20..30) plus a 2-bit
 /// flag (bits 30..32) = 1 where the appearance stores the grid point, for
 /// every grid point: one load per corner in the shader. 10 bits per channel
-/// keep colours within 5e-4 of their f16 values.
+/// keep colours within 5e-4 of their f16 values. Values outside [0, 1] are
+/// clamped before interpolation where the CPU clamps after: the same for
+/// RGB grids in range (demo scenes, imports); trained fields use SH.
 pub fn pack_rgb10(c: [f32; 3]) -> u32 {
     let q = |v: f32| (v.clamp(0.0, 1.0) * 1023.0).round() as u32;
     q(c[0]) | q(c[1]) << 10 | q(c[2]) << 20 | 1 << 30
