@@ -59,6 +59,7 @@ pub fn scene_drawn(march: &MarchScene, status: &SharedStatus) -> bool {
         .is_some_and(|sc| s.frames_drawn > 0 && s.scene_drawn == Arc::as_ptr(sc) as usize)
 }
 
+#[allow(clippy::too_many_arguments)]
 fn screenshot_when_ready(
     mut commands: Commands,
     mut shot: ResMut<ShotState>,

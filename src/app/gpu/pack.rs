@@ -420,9 +420,9 @@ pub fn pack_layers(
         }
         let e = edit.unwrap_or_default();
         let ov = overlay.get(i).copied().unwrap_or_default();
-        let flags = (edit.is_some() as u32) * LAYER_COLOR_EDIT
-            | (ov.highlight as u32) * LAYER_HIGHLIGHT
-            | (ov.dim as u32) * LAYER_DIM;
+        let flag = |on: bool, bit: u32| if on { bit } else { 0 };
+        let flags =
+            flag(edit.is_some(), LAYER_COLOR_EDIT) | flag(ov.highlight, LAYER_HIGHLIGHT) | flag(ov.dim, LAYER_DIM);
         out.push(GpuLayer {
             to_local: affine_cols(&l.to_world.inverse()),
             info: [slot as u32, kind, offset, flags],
@@ -503,14 +503,14 @@ mod tests {
             .map(|c| ((c % 8) as i32, ((c / 8) % 8) as i32, (c / 64) as i32))
             .collect();
         assert!(!occ.is_empty());
-        for c in 0..512usize {
+        for (c, &got) in d.iter().enumerate() {
             let p = ((c % 8) as i32, ((c / 8) % 8) as i32, (c / 64) as i32);
             let want = occ
                 .iter()
                 .map(|q| (p.0 - q.0).abs().max((p.1 - q.1).abs()).max((p.2 - q.2).abs()))
                 .min()
                 .unwrap();
-            assert_eq!(d[c] as i32, want.min(SKIP_MAX as i32), "cell {p:?}");
+            assert_eq!(got as i32, want.min(SKIP_MAX as i32), "cell {p:?}");
         }
         // Cells marked empty really have no density at their grid points.
         let g = f.geom();
