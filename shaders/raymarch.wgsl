@@ -6,8 +6,10 @@
 // densities add and colours mix by density (D²NeRF), alpha = 1 - exp(-σ δ),
 // T_i = Π (1 - alpha_j), C = Σ T_i alpha_i c_i + T_N · background. Grids are
 // corner-aligned (src/field/geom.rs), x fastest; trilinear interpolation is
-// done here in f32 from storage buffers. Sparse colours renormalise over the
-// stored corners, as `ChannelGrid::sample` does.
+// done here in f32 from storage buffers (RGB colours as 10-bit unorm, within
+// 5e-4 of their f16 values; SH coefficients as their f16 values). Sparse
+// colours renormalise over the stored corners, as `ChannelGrid::sample`
+// does. Masks weight the bitmap by density, as `render::bitmap_fraction`.
 //
 // Empty space: each field has a grid of skip cells (2 voxels wide) holding
 // the Chebyshev distance to the nearest cell whose grid points have
@@ -45,9 +47,9 @@ struct FieldInfo {
     bounds_min: vec4<f32>,
     // xyz bounds; w: activation kind (0 relu, 1 softplus)
     bounds_max: vec4<f32>,
-    // nx, ny, nz, sparse colours
+    // nx, ny, nz, colour kind (COLOR_SPARSE | COLOR_SH bits)
     res: vec4<u32>,
-    // density, colours, rank bits, rank prefix
+    // density, colours (RGB10 or SH slot table), SH coefficients, 0
     offsets: vec4<u32>,
     // skip dims xyz, skip offset
     skip: vec4<u32>,
@@ -60,12 +62,14 @@ struct FieldInfo {
 @group(0) @binding(3) var<storage, read> aux: array<u32>;
 @group(0) @binding(4) var<storage, read> bitmaps: array<u32>;
 @group(0) @binding(5) var<storage, read> density: array<f32>;
-@group(0) @binding(6) var<storage, read> colors: array<vec2<u32>>;
+@group(0) @binding(6) var<storage, read> colors: array<u32>;
 
 const MAX_LAYERS: u32 = 16u;
 const MAX_ITERATIONS: u32 = 1000000u;
 const INF: f32 = 3.0e38;
 
+const COLOR_SPARSE: u32 = 1u;
+const COLOR_SH: u32 = 2u;
 const MASK_KEEP: u32 = 1u;
 const MASK_REMOVE: u32 = 2u;
 const LAYER_COLOR_EDIT: u32 = 1u;
@@ -117,6 +121,11 @@ fn activate(f: FieldInfo, raw: f32) -> f32 {
         if x > 20.0 {
             return x;
         }
+        // log(1 + e) loses e below f32 precision; softplus(x) ≈ e^x there
+        // (the CPU uses ln_1p).
+        if x < -12.0 {
+            return exp(x);
+        }
         return log(1.0 + exp(x));
     }
     return max(raw, 0.0);
@@ -136,56 +145,99 @@ fn raw_density(f: FieldInfo, c: Cell) -> f32 {
     return mix(mix(c00, c10, fr.y), mix(c01, c11, fr.y), fr.z);
 }
 
-// Slot of grid point v in the colour array, or -1 when not stored.
-fn color_slot(f: FieldInfo, v: u32) -> i32 {
-    if f.res.w == 0u {
-        return i32(v);
-    }
-    let w = v >> 6u;
-    let lo = aux[f.offsets.z + 2u * w];
-    let hi = aux[f.offsets.z + 2u * w + 1u];
-    let b = v & 63u;
-    var set: u32;
-    var below: u32;
-    if b < 32u {
-        set = (lo >> b) & 1u;
-        below = countOneBits(lo & ((1u << b) - 1u));
-    } else {
-        set = (hi >> (b - 32u)) & 1u;
-        below = countOneBits(lo) + countOneBits(hi & ((1u << (b - 32u)) - 1u));
-    }
-    if set == 0u {
-        return -1;
-    }
-    return i32(aux[f.offsets.w + w] + below);
-}
-
-// Colour in [0, 1] at a cell (ChannelGrid::sample then clamp).
-fn color_at(f: FieldInfo, c: Cell) -> vec3<f32> {
+// RGB colour in [0, 1] at a cell (ChannelGrid::sample then clamp): RGB10
+// per grid point, bits 30..32 = 1 where stored; sparse colours renormalise
+// over the stored corners.
+fn rgb_at(f: FieldInfo, c: Cell) -> vec3<f32> {
     var acc = vec3<f32>(0.0);
     var wsum = 0.0;
+    let o = f.offsets.y + c.base;
     for (var k = 0u; k < 8u; k++) {
-        let w = corner_weight(c.frac, k);
-        if w == 0.0 {
-            continue;
-        }
-        let s = color_slot(f, c.base + corner(f, k));
-        if s < 0 {
-            continue;
-        }
-        let q = colors[f.offsets.y + u32(s)];
-        let rg = unpack2x16float(q.x);
-        let ba = unpack2x16float(q.y);
-        acc += w * vec3<f32>(rg.x, rg.y, ba.x);
+        let q = colors[o + corner(f, k)];
+        let w = select(0.0, corner_weight(c.frac, k), (q >> 30u) == 1u);
+        acc += w * vec3<f32>(f32(q & 1023u), f32((q >> 10u) & 1023u), f32((q >> 20u) & 1023u));
         wsum += w;
     }
     if wsum <= 1e-6 {
         return vec3<f32>(0.0);
     }
-    if f.res.w != 0u {
+    acc = acc / 1023.0;
+    if (f.res.w & COLOR_SPARSE) != 0u {
         acc = acc / wsum;
     }
     return clamp(acc, vec3<f32>(0.0), vec3<f32>(1.0));
+}
+
+// Degree-2 real SH basis for a unit direction (src/field/sh.rs).
+fn sh_basis(d: vec3<f32>) -> array<f32, 9> {
+    let x = d.x;
+    let y = d.y;
+    let z = d.z;
+    return array<f32, 9>(
+        0.2820948,
+        -0.4886025 * y,
+        0.4886025 * z,
+        -0.4886025 * x,
+        1.0925484 * x * y,
+        -1.0925484 * y * z,
+        0.31539157 * (2.0 * z * z - x * x - y * y),
+        -1.0925484 * x * z,
+        0.5462742 * (x * x - y * y),
+    );
+}
+
+// Word of grid point v's 27 f16 SH coefficients (14 words, r0..r8 g0..g8
+// b0..b8), or -1 where the sparse appearance stores none.
+fn sh_base(f: FieldInfo, v: u32) -> i32 {
+    var slot = i32(v);
+    if (f.res.w & COLOR_SPARSE) != 0u {
+        slot = i32(colors[f.offsets.y + v]) - 1;
+        if slot < 0 {
+            return -1;
+        }
+    }
+    return i32(f.offsets.z) + slot * 14;
+}
+
+fn half_at(base: u32, i: u32) -> f32 {
+    let p = unpack2x16float(colors[base + (i >> 1u)]);
+    return select(p.x, p.y, (i & 1u) == 1u);
+}
+
+// SH colour: the coefficients interpolated (renormalised over stored
+// corners when sparse), dotted with the basis, then a sigmoid. The dot is
+// linear, so it is taken per corner before the weighted sum.
+fn sh_at(f: FieldInfo, c: Cell, dir: vec3<f32>) -> vec3<f32> {
+    var b = sh_basis(dir);
+    var acc = vec3<f32>(0.0);
+    var wsum = 0.0;
+    for (var k = 0u; k < 8u; k++) {
+        let w = corner_weight(c.frac, k);
+        let base = sh_base(f, c.base + corner(f, k));
+        if w == 0.0 || base < 0 {
+            continue;
+        }
+        var v = vec3<f32>(0.0);
+        for (var j = 0u; j < 9u; j++) {
+            let u = u32(base);
+            v += b[j] * vec3<f32>(half_at(u, j), half_at(u, 9u + j), half_at(u, 18u + j));
+        }
+        acc += w * v;
+        wsum += w;
+    }
+    if wsum <= 1e-6 {
+        acc = vec3<f32>(0.0);
+    } else if (f.res.w & COLOR_SPARSE) != 0u {
+        acc = acc / wsum;
+    }
+    return vec3<f32>(1.0) / (vec3<f32>(1.0) + exp(-acc));
+}
+
+fn color_at(f: FieldInfo, c: Cell, dir: vec3<f32>) -> vec3<f32> {
+    if (f.res.w & COLOR_SH) != 0u {
+        return sh_at(f, c, dir);
+    }
+    return rgb_at(f, c);
 }
 
 fn bit(offset: u32, idx: u32) -> f32 {
@@ -193,15 +245,32 @@ fn bit(offset: u32, idx: u32) -> f32 {
     return f32((w >> (idx & 31u)) & 1u);
 }
 
-// Trilinearly interpolated mask value b(p) (keep) or 1 - b(p) (remove).
+// The mask value b(p) (keep) or 1 - b(p) (remove), where b is the share of
+// the density that comes from masked corners, b = Σ w σ m / Σ w σ over the
+// 8 corners with σ activated (render::bitmap_fraction): a removal leaves no
+// half-density shell around the object. Without density at any corner, b
+// falls back to the plain interpolation of the bits.
 fn mask_factor(info: vec4<u32>, f: FieldInfo, c: Cell) -> f32 {
     let kind = info.y;
     if kind != MASK_KEEP && kind != MASK_REMOVE {
         return 1.0;
     }
-    var b = 0.0;
+    let o = f.offsets.x + c.base;
+    var inside = 0.0;
+    var total = 0.0;
+    var plain = 0.0;
     for (var k = 0u; k < 8u; k++) {
-        b += corner_weight(c.frac, k) * bit(info.z, c.base + corner(f, k));
+        let off = corner(f, k);
+        let cw = corner_weight(c.frac, k);
+        let w = cw * activate(f, density[o + off]);
+        let m = bit(info.z, c.base + off);
+        total += w;
+        inside += w * m;
+        plain += cw * m;
+    }
+    var b = plain;
+    if total > 0.0 {
+        b = inside / total;
     }
     if kind == MASK_KEEP {
         return b;
@@ -342,7 +411,7 @@ fn shade(n: u32, t: f32, sum: f32) -> vec3<f32> {
         let info = layers[k].info;
         let f = fields[info.x];
         let c = cell_of(f, lo_origin[k] + t * lo_dir[k]);
-        var ck = color_at(f, c);
+        var ck = color_at(f, c, normalize(lo_dir[k]));
         if (info.w & LAYER_COLOR_EDIT) != 0u {
             ck = apply_edit(k, ck);
         }
@@ -406,23 +475,23 @@ fn fragment(@builtin(position) pos: vec4<f32>) -> FragmentOutput {
             }
             // Which layers may have density here; where none does, jump to
             // the first sample some layer might.
-            var any = false;
-            var next = INF;
+            var any_occ = false;
+            var next_t = INF;
             for (var k = 0u; k < n; k++) {
                 if t >= valid_until[k] {
                     update_state(k, t);
                 }
                 if occupied[k] != 0u {
-                    any = true;
+                    any_occ = true;
                 } else {
-                    next = min(next, valid_until[k]);
+                    next_t = min(next_t, valid_until[k]);
                 }
             }
-            if !any {
-                if next >= INF {
+            if !any_occ {
+                if next_t >= INF {
                     break;
                 }
-                i = max(ceil(next / dt - 0.5), i + 1.0);
+                i = max(ceil(next_t / dt - 0.5), i + 1.0);
                 continue;
             }
             i += 1.0;

@@ -142,3 +142,101 @@ fn strokes_through_the_ecs_equal_the_library_and_undo_redo_restore() {
     assert_eq!(objs[0].0, name);
     assert_eq!(*objs[0].1, *after_neg, "redo returns to the same state");
 }
+
+/// The `+` key grows the selected object one step (the library's `Grower`
+/// on the same mask); a placement the entity holds ahead of the session
+/// (a drag) shows in the GPU scene, is committed as one `Transform`
+/// command, and undo puts entity, session and scene back.
+#[test]
+fn keyboard_growth_and_a_committed_drag_go_through_commands() {
+    use isrf::app::editor::tools::transform_command;
+    use isrf::app::editor::{keyboard_shortcuts, EditorSystems};
+    use isrf::segment::{Grower, Growth};
+
+    let mut app = app();
+    app.init_resource::<ButtonInput<KeyCode>>()
+        .add_systems(Update, keyboard_shortcuts.before(EditorSystems::Model));
+    // A tight seed and strokes without growth, so that the key's step has
+    // work to do.
+    app.world_mut()
+        .resource_mut::<EditorSession>()
+        .apply(Command::SetParams {
+            k: None,
+            theta: Some(0.02),
+            sigma_f: None,
+            sigma_s: None,
+            tau: None,
+            growth: Some(Growth::Steps(0)),
+        });
+    let stroke = demo_stroke("mug");
+    app.world_mut().write_message(StrokeMsg {
+        camera: stroke.camera,
+        points: stroke.points.clone(),
+        radius: stroke.radius,
+        polarity: Polarity::Positive,
+    });
+    settle(&mut app);
+    let (name, before, _) = objects(&mut app)[0].clone();
+
+    // Grow one step with the keyboard.
+    let mut keys = app.world_mut().resource_mut::<ButtonInput<KeyCode>>();
+    keys.press(KeyCode::Equal);
+    app.update();
+    app.world_mut()
+        .resource_mut::<ButtonInput<KeyCode>>()
+        .release(KeyCode::Equal);
+    app.world_mut().resource_mut::<ButtonInput<KeyCode>>().clear();
+    settle(&mut app);
+    let grown = objects(&mut app)[0].1.clone();
+    let es = app.world().resource::<EditorSession>();
+    let cache = es.state.fields[0].field.feature_cache().unwrap();
+    let mut want = (*before).clone();
+    Grower::new(&cache, es.state.params.grow).step(&mut want);
+    assert_eq!(*grown, want, "keyboard growth == library growth");
+    assert!(grown.count() > before.count(), "one more step adds voxels");
+    assert!(matches!(
+        es.session().unwrap().log().last(),
+        Some(Command::Grow {
+            steps: Growth::Steps(1),
+            ..
+        })
+    ));
+
+    // Drag: the entity moves first (preview), the scene follows.
+    let entity = {
+        let mut q = app.world_mut().query::<(Entity, &SessionName)>();
+        q.iter(app.world()).find(|(_, n)| n.0 == name).unwrap().0
+    };
+    let start = *app.world().get::<Transform>(entity).unwrap();
+    let moved = start.with_translation(Vec3::new(0.3, 0.0, -0.2));
+    *app.world_mut().get_mut::<Transform>(entity).unwrap() = moved;
+    app.update();
+    let scene = app.world().resource::<MarchScene>().scene.clone().unwrap();
+    assert!(
+        scene
+            .layers
+            .iter()
+            .any(|l| (l.to_world.translation - glam::Vec3A::new(0.3, 0.0, -0.2)).length() < 1e-6),
+        "the preview placement reaches the GPU scene"
+    );
+    // Release: one command.
+    let cmd = transform_command(&name, &start, &moved);
+    app.world_mut().resource_mut::<EditorSession>().apply(cmd);
+    settle(&mut app);
+    let es = app.world().resource::<EditorSession>();
+    let placed = es.state.objects[0].transform;
+    assert!((placed.translation - glam::Vec3A::new(0.3, 0.0, -0.2)).length() < 1e-5);
+    assert!(matches!(
+        es.session().unwrap().log().last(),
+        Some(Command::Transform { .. })
+    ));
+
+    app.world_mut().resource_mut::<EditorSession>().push(Request::Undo);
+    settle(&mut app);
+    assert_eq!(
+        *app.world().get::<Transform>(entity).unwrap(),
+        start,
+        "undo moves the entity back"
+    );
+    assert_eq!(*objects(&mut app)[0].1, want, "undo of the move keeps the grown mask");
+}

@@ -1,16 +1,25 @@
-//! The WGSL ray marcher computes the CPU reference renderer's image: the demo
-//! tabletop and a composition with a moved, masked, recoloured object, at
-//! 160×120, PSNR ≥ 35 dB. Skips (with a message) where no GPU adapter exists.
+//! The WGSL ray marcher computes the CPU reference renderer's image (PSNR
+//! ≥ 45 dB at 160×120; the issue asks 35): the demo tabletop; a composition
+//! with a moved, masked, recoloured object; a removed object and the object
+//! alone (density-weighted masks); SH appearance (sparse and dense),
+//! softplus density and a second field with its own scaled transform. Skips
+//! (with a message) where no GPU adapter exists.
 #![cfg(feature = "editor")]
 
 use glam::{Affine3A, Quat, Vec3};
 use isrf::app::headless::{gpu_available, HeadlessRenderer};
 use isrf::camera::{Camera, Intrinsics};
+use isrf::field::{Aabb, Activation, Appearance, ChannelGrid, Field, FieldBuilder, GridGeom, Layout};
 use isrf::render::{render, ColorEdit, Layer, Mask, RenderOptions, Scene};
 use std::sync::Arc;
 
 const W: u32 = 160;
 const H: u32 = 120;
+/// The issue asks for 35 dB; the images agree to 8-bit rounding (about
+/// 60 dB on lavapipe), while a plain-trilinear mask or an SH colour off by
+/// 10 % already drops to 36–38 dB: 45 dB tells those apart and leaves room
+/// for GPUs with less exact exp / log.
+const MIN_PSNR: f64 = 45.0;
 
 fn psnr(a: &[Vec3], b: &[Vec3]) -> f64 {
     assert_eq!(a.len(), b.len());
@@ -66,7 +75,7 @@ fn gpu_matches_cpu_on_the_tabletop_and_a_composition() {
     let want = cpu(&scene, &cam);
     let p = psnr(&gpu, &want);
     eprintln!("tabletop 64³ at {W}x{H}: PSNR {p:.2} dB");
-    assert!(p >= 35.0, "tabletop PSNR {p:.2} dB < 35");
+    assert!(p >= MIN_PSNR, "tabletop PSNR {p:.2} dB < {MIN_PSNR}");
     // The image is not trivially the background.
     let bg = want.iter().filter(|c| (**c - Vec3::ONE).length() < 1e-3).count();
     assert!(bg < want.len() / 2, "the view shows mostly background");
@@ -90,7 +99,124 @@ fn gpu_matches_cpu_on_the_tabletop_and_a_composition() {
     let want2 = cpu(&comp, &cam);
     let p2 = psnr(&gpu2, &want2);
     eprintln!("composition at {W}x{H}: PSNR {p2:.2} dB");
-    assert!(p2 >= 35.0, "composition PSNR {p2:.2} dB < 35");
+    assert!(p2 >= MIN_PSNR, "composition PSNR {p2:.2} dB < {MIN_PSNR}");
     // The composition differs from the plain field (the edit is visible).
     assert!(psnr(&want, &want2) < 40.0, "moving the mug changed nothing");
+}
+
+/// 27 SH channels per slot whose DC term gives `rgb` and whose higher
+/// terms add a view-dependent ripple, so that direction handling matters.
+fn sh_from_rgb(rgb: [f32; 3], seed: f32) -> Vec<half::f16> {
+    const C0: f32 = 0.282_094_8;
+    let mut out = Vec::with_capacity(27);
+    for (c, v) in rgb.iter().enumerate() {
+        let v = v.clamp(0.03, 0.97);
+        out.push(half::f16::from_f32((v / (1.0 - v)).ln() / C0));
+        for j in 1..9 {
+            out.push(half::f16::from_f32(0.6 * (seed * 0.37 + (j * 3 + c) as f32).sin()));
+        }
+    }
+    out
+}
+
+/// The demo tabletop with its sparse RGB turned into sparse SH (same rank
+/// index), as an imported Plenoxels-style grid would be.
+fn sparse_sh(field: &Field) -> Field {
+    let Appearance::Rgb(g) = &field.appearance else {
+        panic!("demo appearance is RGB")
+    };
+    let Layout::Sparse(ix) = &g.layout else {
+        panic!("demo appearance is sparse")
+    };
+    let data: Vec<half::f16> = g
+        .data
+        .chunks(3)
+        .enumerate()
+        .flat_map(|(s, c)| sh_from_rgb([c[0].to_f32(), c[1].to_f32(), c[2].to_f32()], s as f32))
+        .collect();
+    let mut f = field.clone();
+    f.appearance = Appearance::Sh2(ChannelGrid::sparse(g.geom, 27, ix.clone(), data));
+    f
+}
+
+/// A trained-looking field: softplus density with a shift, dense SH.
+fn softplus_sh_ball() -> Field {
+    let b = FieldBuilder {
+        geom: GridGeom::new(Aabb::new(Vec3::splat(-0.3), Vec3::splat(0.3)), [40, 40, 40]),
+        activation: Activation::Softplus { shift: -6.0 },
+    };
+    let mut f = b.build(|p| (300.0 * (0.22 - p.length())).max(-10.0), |_| Vec3::ONE, None);
+    let g = f.geom();
+    let data: Vec<half::f16> = (0..g.len())
+        .flat_map(|i| {
+            let p = g.point_of(i);
+            sh_from_rgb([0.5 + p.x, 0.5 + p.y, 0.5 - p.z], p.x * 20.0 + p.z * 7.0)
+        })
+        .collect();
+    f.appearance = Appearance::Sh2(ChannelGrid::dense(g, 27, data));
+    f
+}
+
+#[test]
+fn gpu_matches_cpu_with_sh_appearance_softplus_density_and_two_fields() {
+    if skip() {
+        return;
+    }
+    let (d, cam) = demo();
+    let mug = Arc::new(d.labels.mask(d.labels.label_of("mug").unwrap()));
+    let table = Arc::new(sparse_sh(&d.field));
+    let ball = Arc::new(softplus_sh_ball());
+    let mut r = HeadlessRenderer::new(W, H).unwrap();
+
+    // The mug removed from the SH tabletop, and a second field (softplus,
+    // dense SH) placed, rotated and scaled on the table.
+    let mut rest = Layer::new(table.clone());
+    rest.mask = Mask::Remove(mug.clone());
+    let mut other = Layer::new(ball);
+    let g = table.geom();
+    let (lo, hi) = mug.bounding_box().unwrap();
+    let mug_centre = 0.5 * (g.point(lo[0], lo[1], lo[2]) + g.point(hi[0], hi[1], hi[2]));
+    other.to_world =
+        Affine3A::from_scale_rotation_translation(Vec3::splat(0.5), Quat::from_rotation_x(0.4), mug_centre);
+    let comp = Scene::new(vec![rest.clone(), other]);
+    // The ball is in view where the mug was.
+    let seen = psnr(&cpu(&comp, &cam), &cpu(&Scene::new(vec![rest]), &cam));
+    assert!(seen < 40.0, "the ball is not in view (PSNR {seen:.1} dB against the scene without it)");
+    for (name, scene) in [
+        ("sparse SH tabletop", Scene::single(table.clone())),
+        ("SH tabletop, mug removed, + softplus SH ball", comp),
+    ] {
+        let gpu = r.render(Arc::new(scene.clone()), &cam).unwrap();
+        let want = cpu(&scene, &cam);
+        let p = psnr(&gpu, &want);
+        eprintln!("{name} at {W}x{H}: PSNR {p:.2} dB");
+        assert!(p >= MIN_PSNR, "{name}: PSNR {p:.2} dB < {MIN_PSNR}");
+    }
+}
+
+#[test]
+fn a_removed_object_leaves_no_shell_on_the_gpu() {
+    if skip() {
+        return;
+    }
+    let (d, cam) = demo();
+    let field = Arc::new(d.field);
+    let mug = Arc::new(d.labels.mask(d.labels.label_of("mug").unwrap()));
+    let mut removed = Layer::new(field.clone());
+    removed.mask = Mask::Remove(mug.clone());
+    let scene = Scene::new(vec![removed]);
+    let mut r = HeadlessRenderer::new(W, H).unwrap();
+    let gpu = r.render(Arc::new(scene.clone()), &cam).unwrap();
+    let want = cpu(&scene, &cam);
+    let p = psnr(&gpu, &want);
+    eprintln!("mug removed at {W}x{H}: PSNR {p:.2} dB");
+    assert!(p >= MIN_PSNR, "removal PSNR {p:.2} dB < {MIN_PSNR}");
+    // Only the object's layer: what remains is exactly the mug.
+    let mut keep = Layer::new(field);
+    keep.mask = Mask::Keep(mug);
+    let only = Scene::new(vec![keep]);
+    let gpu = r.render(Arc::new(only.clone()), &cam).unwrap();
+    let p = psnr(&gpu, &cpu(&only, &cam));
+    eprintln!("mug alone at {W}x{H}: PSNR {p:.2} dB");
+    assert!(p >= MIN_PSNR, "keep PSNR {p:.2} dB < {MIN_PSNR}");
 }

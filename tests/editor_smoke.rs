@@ -1,7 +1,8 @@
 //! Smoke test of the windowed editor under `xvfb-run` on a software Vulkan
 //! driver: `isrf edit --scene tabletop --script S --screenshot OUT` strokes
 //! the mug and moves it; the pixels where the mug was change against a
-//! screenshot without the script. Skips (with a message) without xvfb-run or
+//! screenshot without the script; with the panels shown it still renders
+//! and exits 0. Skips (with a message) without xvfb-run or
 //! a Vulkan adapter.
 #![cfg(feature = "editor")]
 
@@ -21,18 +22,24 @@ fn have(cmd: &str) -> bool {
         .is_ok_and(|o| o.status.success())
 }
 
-fn screenshot(dir: &Path, name: &str, script: Option<&Path>) -> image::RgbImage {
+/// Runs the editor; `ui` shows the panels (in a 960×600 window, so the view
+/// keeps some room), else the bare W×H view.
+fn screenshot(dir: &Path, name: &str, script: Option<&Path>, ui: bool) -> image::RgbImage {
+    let size = if ui { "960x600".to_string() } else { format!("{W}x{H}") };
     let out = dir.join(format!("{name}.png"));
     let mut cmd = Command::new("xvfb-run");
     cmd.args(["-a", "-s", "-screen 0 1024x768x24"])
         .arg(env!("CARGO_BIN_EXE_isrf"))
         .args(["edit", "--scene", "tabletop", "--res", &RES.to_string()])
-        .args(["--size", &format!("{W}x{H}"), "--no-ui", "--screenshot"])
+        .args(["--size", &size, "--screenshot"])
         .arg(&out)
         .env("WGPU_BACKEND", "vulkan")
         .current_dir(dir);
     if let Some(s) = script {
         cmd.arg("--script").arg(s);
+    }
+    if !ui {
+        cmd.arg("--no-ui");
     }
     let o = cmd.output().expect("running xvfb-run");
     assert!(
@@ -65,8 +72,8 @@ fn editor_strokes_and_moves_an_object_under_xvfb() {
         ]"#,
     )
     .unwrap();
-    let before = screenshot(dir.path(), "before", None);
-    let after = screenshot(dir.path(), "after", Some(&script));
+    let before = screenshot(dir.path(), "before", None, false);
+    let after = screenshot(dir.path(), "after", Some(&script), false);
     assert_eq!(before.dimensions(), (W, H));
     assert_eq!(after.dimensions(), (W, H));
 
@@ -106,4 +113,10 @@ fn editor_strokes_and_moves_an_object_under_xvfb() {
         overall < 0.2,
         "the whole view changed ({overall:.3}): the camera moved?"
     );
+
+    // The same with the panels (every UI system runs, the moved object is
+    // selected): it renders and exits 0.
+    let ui = screenshot(dir.path(), "ui", Some(&script), true);
+    let grey = ui.pixels().filter(|p| p[0] == p[1] && p[1] == p[2]).count();
+    assert!(grey < ui.pixels().len(), "the screenshot with panels shows no colour");
 }

@@ -58,7 +58,7 @@ pub struct OverlayMode {
 }
 
 /// Per-object previews the entities hold ahead of the session.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Preview {
     pub object: String,
     pub transform: Affine3A,

@@ -108,6 +108,8 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         println!("adapter: {info}");
     }
     let k = Intrinsics::from_fov_x(a.width, a.height, 50f32.to_radians());
+    // The object the stroke timing segments: the mug, else the first one.
+    let stroke_object = d.object("mug").or(d.objects.first()).map(|o| o.name.clone());
     let field = Arc::new(d.field);
     let mut scenes = vec![("field".to_string(), Scene::single(field.clone()))];
     if let Some(label) = d.labels.label_of("mug").or_else(|| d.objects.first().map(|o| o.label)) {
@@ -150,7 +152,60 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         }
         println!("{name:<28} {:>10.1} {:>10.2}", 1e3 / fps, fps);
     }
+    if let Some(object) = &stroke_object {
+        stroke_to_visible(&mut r, &a, object, &views[0])?;
+    }
     println!("fps: {first_fps:.2}");
+    Ok(())
+}
+
+/// Times a demo stroke as the editor runs it: the session's `Stroke`
+/// command (features, k-means, NNFM, growth), the scene rebuild, the mask
+/// upload and the first GPU frame that shows it.
+#[cfg(feature = "editor")]
+fn stroke_to_visible(
+    r: &mut isrf::app::headless::HeadlessRenderer,
+    a: &BenchArgs,
+    object: &str,
+    view: &isrf::camera::Camera,
+) -> Result<()> {
+    use isrf::command::session::scene_of;
+    use isrf::command::{Command, FieldSource, Session, StrokeSource};
+    use std::sync::Arc;
+    use std::time::Instant;
+
+    let mut s = Session::default();
+    s.apply(&Command::LoadField {
+        name: a.scene.clone(),
+        source: FieldSource::Demo {
+            scene: a.scene.clone(),
+            res: a.res,
+            seed: 0,
+        },
+        transform: None,
+    })?;
+    // As in the editor after loading: features cached, the field on the GPU.
+    s.state.fields[0].field.feature_cache()?;
+    r.set_camera(view)?;
+    r.set_scene(Arc::new(scene_of(&s.state).0));
+    r.wait_drawn()?;
+    let t0 = Instant::now();
+    s.apply(&Command::Stroke {
+        object: object.to_string(),
+        field: None,
+        polarity: None,
+        source: StrokeSource::Demo {
+            object: object.to_string(),
+        },
+    })?;
+    let seg = t0.elapsed().as_secs_f64() * 1e3;
+    r.set_scene(Arc::new(scene_of(&s.state).0));
+    r.wait_drawn()?;
+    let total = t0.elapsed().as_secs_f64() * 1e3;
+    println!(
+        "stroke -> visible: {total:.0} ms (segmentation {seg:.0} ms, mask upload + frame {:.0} ms)",
+        total - seg
+    );
     Ok(())
 }
 

@@ -3,6 +3,7 @@
 //! drawn, then save the window and exit (0 on success).
 
 use super::session::EditorSession;
+use super::state::EditorState;
 use crate::app::gpu::{MarchScene, SharedStatus};
 use bevy::prelude::*;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured};
@@ -58,11 +59,13 @@ pub fn scene_drawn(march: &MarchScene, status: &SharedStatus) -> bool {
         .is_some_and(|sc| s.frames_drawn > 0 && s.scene_drawn == Arc::as_ptr(sc) as usize)
 }
 
+#[allow(clippy::too_many_arguments)]
 fn screenshot_when_ready(
     mut commands: Commands,
     mut shot: ResMut<ShotState>,
     gate: Res<ScreenshotGate>,
     es: Res<EditorSession>,
+    state: Res<EditorState>,
     march: Res<MarchScene>,
     status: Res<SharedStatus>,
     mut exit: MessageWriter<AppExit>,
@@ -91,6 +94,16 @@ fn screenshot_when_ready(
     }
     if let Some(e) = status.get().error {
         error!("screenshot: the GPU view failed: {e}");
+        exit.write(AppExit::error());
+        return;
+    }
+    // A start-up request failed (a missing file, a bad script step): the
+    // screenshot would not show what was asked for.
+    if !es.busy() && !state.errors.is_empty() {
+        error!(
+            "screenshot: not taken, the editor reported: {}",
+            state.errors.join("; ")
+        );
         exit.write(AppExit::error());
         return;
     }

@@ -198,46 +198,67 @@ pub fn spawn_camera(mut commands: Commands) {
 #[derive(Resource, Default)]
 pub struct SceneSync {
     cuts: CutCache,
-    version: u64,
+    /// What the current scene was built from (rebuild only when it differs:
+    /// egui's `&mut` bindings mark resources and components changed every
+    /// frame, and a scene per frame would never finish drawing).
+    built_from: Option<SceneInputs>,
     /// Whether the view was aimed at the first capture view already.
     aimed: bool,
     /// Scenes built so far.
     pub builds: u64,
 }
 
-#[allow(clippy::type_complexity, clippy::too_many_arguments)]
-pub fn sync_scene(
-    mut sync: ResMut<SceneSync>,
-    mut march: ResMut<MarchScene>,
-    mut state: ResMut<EditorState>,
-    es: Res<EditorSession>,
-    objects: Query<(&SessionName, &ObjectLayer, &Transform, Has<Selected>)>,
-    fields: Query<(&SessionName, &FieldLayer, Has<Selected>)>,
-    changed: Query<(), Or<(Changed<Transform>, Changed<ObjectLayer>, Added<Selected>)>>,
-    removed_sel: RemovedComponents<Selected>,
-    mut cams: Query<(&mut Transform, &mut Projection, &mut PanOrbitCamera), (With<EditorCamera>, Without<ObjectLayer>)>,
-) {
-    let dirty = sync.version != es.version || !changed.is_empty() || !removed_sel.is_empty() || state.is_changed();
-    if !dirty {
+/// Everything `build_scene` reads besides the session state.
+#[derive(Clone, PartialEq)]
+struct SceneInputs {
+    version: u64,
+    previews: Vec<Preview>,
+    selected: Option<String>,
+    mode: OverlayMode,
+    background: [f32; 3],
+    step_scale: f32,
+}
+
+type EditorCamQuery<'w, 's> = Query<
+    'w,
+    's,
+    (
+        &'static mut Transform,
+        &'static mut Projection,
+        &'static mut PanOrbitCamera,
+    ),
+    (With<EditorCamera>, Without<ObjectLayer>),
+>;
+
+/// Aims the view at the first capture view, once there is one.
+fn aim_once(sync: &mut SceneSync, state: &EditorState, es: &EditorSession, cams: &mut EditorCamQuery) {
+    if sync.aimed {
         return;
     }
-    sync.version = es.version;
-    // Aim at the first capture view once there is one.
-    if !sync.aimed {
-        if let (Some((_, cam)), Ok((mut t, mut p, mut pan))) = (state.capture_cameras.first(), cams.single_mut()) {
-            let center = es
-                .state
-                .fields
-                .first()
-                .map_or(Vec3::ZERO, |f| to_bevy_vec3(f.field.bounds().center()));
-            let depth = (center - to_bevy_vec3(cam.position())).dot(to_bevy_vec3(cam.forward()));
-            camera::snap_to(cam, depth, &mut t, &mut p, &mut pan);
-            sync.aimed = true;
-        }
-    }
+    let (Some((_, cam)), Ok((mut t, mut p, mut pan))) = (state.capture_cameras.first(), cams.single_mut()) else {
+        return;
+    };
+    let center = es
+        .state
+        .fields
+        .first()
+        .map_or(Vec3::ZERO, |f| to_bevy_vec3(f.field.bounds().center()));
+    let depth = (center - to_bevy_vec3(cam.position())).dot(to_bevy_vec3(cam.forward()));
+    camera::snap_to(cam, depth, &mut t, &mut p, &mut pan);
+    sync.aimed = true;
+}
+
+/// The scene inputs: objects whose entity placement or appearance differs
+/// from the session's become previews.
+fn scene_inputs(
+    state: &EditorState,
+    es: &EditorSession,
+    objects: &Query<(&SessionName, &ObjectLayer, &Transform, Has<Selected>)>,
+    field_selected: bool,
+) -> SceneInputs {
     let mut previews = Vec::new();
     let mut selected = None;
-    for (name, o, t, sel) in &objects {
+    for (name, o, t, sel) in objects {
         if sel {
             selected = Some(name.0.clone());
         }
@@ -253,27 +274,54 @@ pub fn sync_scene(
             });
         }
     }
-    let mode = if fields.iter().any(|f| f.2) {
-        OverlayMode::default()
-    } else {
-        state.overlay
-    };
+    previews.sort_by(|a, b| a.object.cmp(&b.object));
+    SceneInputs {
+        version: es.version,
+        previews,
+        selected,
+        mode: if field_selected {
+            OverlayMode::default()
+        } else {
+            state.overlay
+        },
+        background: state.background,
+        step_scale: state.step_scale,
+    }
+}
+
+pub fn sync_scene(
+    mut sync: ResMut<SceneSync>,
+    mut march: ResMut<MarchScene>,
+    mut state: ResMut<EditorState>,
+    es: Res<EditorSession>,
+    objects: Query<(&SessionName, &ObjectLayer, &Transform, Has<Selected>)>,
+    fields: Query<(&SessionName, &FieldLayer, Has<Selected>)>,
+    mut cams: EditorCamQuery,
+) {
+    aim_once(&mut sync, &state, &es, &mut cams);
+    let inputs = scene_inputs(&state, &es, &objects, fields.iter().any(|f| f.2));
+    if sync.built_from.as_ref() == Some(&inputs) {
+        return;
+    }
     let mut st = es.state.clone();
-    st.background = state.background;
-    match build_scene(&st, &previews, selected.as_deref(), mode, &mut sync.cuts) {
+    st.background = inputs.background;
+    match build_scene(
+        &st,
+        &inputs.previews,
+        inputs.selected.as_deref(),
+        inputs.mode,
+        &mut sync.cuts,
+    ) {
         Ok((scene, overlay)) => {
-            let step = if scene.layers.is_empty() {
-                None
-            } else {
-                Some(scene.default_step() * state.step_scale)
-            };
+            let step = (!scene.layers.is_empty()).then(|| scene.default_step() * inputs.step_scale);
             march.scene = Some(Arc::new(scene));
             march.overlay = overlay;
             march.step = step;
             sync.builds += 1;
         }
-        Err(e) => state.bypass_change_detection().error(e),
+        Err(e) => state.error(e),
     }
+    sync.built_from = Some(inputs);
 }
 
 /// Turns finished strokes into `Stroke` commands on the selected object (a
@@ -386,6 +434,14 @@ pub fn keyboard_shortcuts(
     }
 }
 
+/// The object of the last `Stroke` among `requests`.
+fn last_stroked(requests: &[Request]) -> Option<String> {
+    requests.iter().rev().find_map(|r| match r {
+        Request::Apply(Command::Stroke { object, .. }) => Some(object.clone()),
+        _ => None,
+    })
+}
+
 /// Opens the editor window and runs until it is closed (or, with
 /// `screenshot`, until the screenshot is saved).
 pub fn run(opts: EditorOptions) -> Result<()> {
@@ -403,10 +459,17 @@ pub fn run(opts: EditorOptions) -> Result<()> {
     .add_plugins(bevy::diagnostic::FrameTimeDiagnosticsPlugin::default());
     let cwd = std::env::current_dir().map_err(|e| Error::io(".", e))?;
     let mut es = EditorSession::new(Session::new(cwd.clone(), cwd));
+    // The last object a start-up script strokes starts selected.
+    let state = EditorState {
+        pending_select: last_stroked(&requests),
+        ..default()
+    };
     for r in requests {
         es.push(r);
     }
-    app.insert_resource(es).add_plugins(EditorPlugin { ui: !opts.no_ui });
+    app.insert_resource(es)
+        .insert_resource(state)
+        .add_plugins(EditorPlugin { ui: !opts.no_ui });
     if let Some(path) = &opts.screenshot {
         app.add_plugins(capture::ScreenshotPlugin { path: path.clone() });
     }

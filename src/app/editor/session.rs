@@ -19,6 +19,8 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 /// One queued request.
+// A handful are queued at a time: boxing the large `Command` buys nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 pub enum Request {
     Apply(Command),

@@ -25,9 +25,9 @@ use bevy::render::extract_resource::{ExtractResource, ExtractResourcePlugin};
 use bevy::render::render_resource::binding_types::{storage_buffer_read_only_sized, uniform_buffer_sized};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor,
-    BufferUsages, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction, DepthStencilState,
-    FragmentState, MultisampleState, PipelineCache, RenderPassDescriptor, RenderPipelineDescriptor, ShaderStages,
-    SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureFormat,
+    BufferUsages, CachedPipelineState, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction,
+    DepthStencilState, FragmentState, MultisampleState, PipelineCache, RenderPassDescriptor, RenderPipelineDescriptor,
+    ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureFormat,
 };
 use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue, ViewQuery};
 use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
@@ -109,10 +109,16 @@ pub struct RayMarchPlugin;
 
 impl Plugin for RayMarchPlugin {
     fn build(&self, app: &mut App) {
-        let shader = app.world_mut().resource_mut::<Assets<Shader>>().add(Shader::from_wgsl(
-            include_str!("../../../shaders/raymarch.wgsl"),
-            "shaders/raymarch.wgsl",
-        ));
+        // ISRF_RAYMARCH_WGSL=path loads the shader from a file instead of the
+        // built-in copy (for shader development without rebuilding).
+        let source = std::env::var("ISRF_RAYMARCH_WGSL")
+            .ok()
+            .and_then(|p| std::fs::read_to_string(p).ok())
+            .unwrap_or_else(|| include_str!("../../../shaders/raymarch.wgsl").to_string());
+        let shader = app
+            .world_mut()
+            .resource_mut::<Assets<Shader>>()
+            .add(Shader::from_wgsl(source, "shaders/raymarch.wgsl"));
         let status = SharedStatus::default();
         app.init_resource::<MarchScene>()
             .insert_resource(status.clone())
@@ -238,11 +244,13 @@ struct GpuSceneCache {
     ready: bool,
 }
 
-/// A storage buffer holding `data` (padded to 16 bytes: empty bindings are
-/// not allowed).
+/// A storage buffer holding `data`, padded to a multiple of 16 bytes and to
+/// at least 256: empty bindings are not allowed, and a runtime-sized array
+/// binding must hold one element (`Layer` is 144 bytes) even when the scene
+/// is empty.
 fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> Buffer {
     let mut bytes = data.to_vec();
-    bytes.resize(bytes.len().max(16).next_multiple_of(16), 0);
+    bytes.resize(bytes.len().max(256).next_multiple_of(16), 0);
     device.create_buffer_with_data(&BufferInitDescriptor {
         label: Some(label),
         contents: &bytes,
@@ -276,9 +284,10 @@ fn update_fields(
     device: &RenderDevice,
     status: &SharedStatus,
 ) -> crate::Result<()> {
-    let same = wanted.len() == cache.fields.len()
-        && wanted.iter().zip(&cache.fields).all(|(a, b)| Arc::ptr_eq(a, &b.field));
-    if same {
+    let same =
+        wanted.len() == cache.fields.len() && wanted.iter().zip(&cache.fields).all(|(a, b)| Arc::ptr_eq(a, &b.field));
+    // (An empty scene still needs its empty buffers, to draw the background.)
+    if same && cache.field_buffer.is_some() {
         return Ok(());
     }
     let t0 = Instant::now();
@@ -386,7 +395,12 @@ fn update_cache(
         cache.layer_buffer = Some(storage_buffer(device, "isrf_layers", bytes));
     }
     cache.layers = layers;
-    let step = march.step.unwrap_or_else(|| scene.default_step());
+    // An empty scene (nothing loaded yet) draws the background; any step will do.
+    let step = match march.step {
+        Some(s) => s,
+        None if scene.layers.is_empty() => 1.0,
+        None => scene.default_step(),
+    };
     crate::ensure!(
         step.is_finite() && step > 0.0,
         "render step must be positive, got {step}"
@@ -499,6 +513,10 @@ fn raymarch_pass(
 ) {
     let (camera, target, depth, bind_group, pipeline_id) = view.into_inner();
     let Some(pipeline) = pipeline_cache.get_render_pipeline(pipeline_id.0) else {
+        if let CachedPipelineState::Err(e) = pipeline_cache.get_render_pipeline_state(pipeline_id.0) {
+            let msg = format!("the ray-marching shader failed to compile: {e}");
+            status.update(|s| s.error = Some(msg));
+        }
         return;
     };
     let color_attachments = [Some(target.get_color_attachment())];

@@ -7,13 +7,12 @@
 //! fields' arrays are concatenated, and [`GpuField::offsets`] say where each
 //! field's part starts:
 //! - `density` (`array<f32>`): raw density per grid point, x fastest;
-//! - `colors` (`array<vec2<u32>>`): RGBA as four f16 per stored grid point
-//!   (every point for dense appearance, the occupied ones in rank order for
-//!   sparse appearance, exactly like `ChannelGrid`);
+//! - `colors` (`array<u32>`): RGB appearance: [`pack_rgb10`] colour and
+//!   stored flag per grid point (sparse appearance renormalises over stored
+//!   corners, exactly like `ChannelGrid::sample`); SH appearance: see
+//!   [`sh_colors`] (kind in `GpuField::res[3]`);
 //! - `aux` (`array<u32>`): per field the empty-space grid (one byte per
-//!   skip cell, see [`skip_grid`]) and, for sparse appearance, the rank
-//!   index: the occupancy bits as little-endian u32 pairs of the u64 words,
-//!   then the prefix count of every u64 word;
+//!   skip cell, see [`skip_grid`]);
 //! - `bitmaps` (`array<u32>`): the packed words of every mask (bit `i` is bit
 //!   `i & 31` of word `offset + i >> 5`).
 
@@ -89,10 +88,9 @@ pub struct GpuField {
     pub bounds_min: [f32; 4],
     /// xyz; w = activation kind (0 relu, 1 softplus).
     pub bounds_max: [f32; 4],
-    /// nx, ny, nz, 1 if the colours are sparse.
+    /// nx, ny, nz, colour kind ([`COLOR_SPARSE`] | [`COLOR_SH`]).
     pub res: [u32; 4],
-    /// Offsets: density (f32), colours (vec2), rank bits (aux u32), rank
-    /// prefix (aux u32).
+    /// Offsets: density (f32), colours (u32), SH coefficients (u32), 0.
     pub offsets: [u32; 4],
     /// Skip grid dims xyz, offset (aux u32).
     pub skip: [u32; 4],
@@ -104,9 +102,9 @@ pub struct GpuField {
 #[derive(Clone, Debug)]
 pub struct PackedField {
     pub density: Vec<f32>,
-    /// RGBA f16 per stored grid point.
-    pub colors: Vec<[u32; 2]>,
-    /// Skip grid bytes packed four per u32, then rank bits, then prefixes.
+    /// [`pack_rgb10`] per grid point, or [`sh_colors`].
+    pub colors: Vec<u32>,
+    /// Skip grid bytes packed four per u32.
     pub aux: Vec<u32>,
     pub info: GpuField,
 }
@@ -171,33 +169,96 @@ fn chebyshev(occ: &[bool], dims: [usize; 3]) -> Vec<u8> {
     dist
 }
 
-/// f16 RGBA of `n` slots of a channel grid (first three channels, a = 1).
-fn colors_of(g: &ChannelGrid, slots: usize) -> Vec<[u32; 2]> {
+/// RGB as 10-bit unorm (r in bits 0..10, g 10..20, b 20..30) plus a 2-bit
+/// flag (bits 30..32) = 1 where the appearance stores the grid point, for
+/// every grid point: one load per corner in the shader. 10 bits per channel
+/// keep colours within 5e-4 of their f16 values. Values outside [0, 1] are
+/// clamped before interpolation where the CPU clamps after: the same for
+/// RGB grids in range (demo scenes, imports); trained fields use SH.
+pub fn pack_rgb10(c: [f32; 3]) -> u32 {
+    let q = |v: f32| (v.clamp(0.0, 1.0) * 1023.0).round() as u32;
+    q(c[0]) | q(c[1]) << 10 | q(c[2]) << 20 | 1 << 30
+}
+
+fn sparse_bit(g: &ChannelGrid) -> u32 {
+    match g.layout {
+        Layout::Dense => 0,
+        Layout::Sparse(_) => COLOR_SPARSE,
+    }
+}
+
+fn colors_of(g: &ChannelGrid, n: usize) -> Vec<u32> {
     let ch = g.channels;
-    (0..slots)
+    (0..n)
         .into_par_iter()
-        .map(|s| {
-            let c = &g.data[s * ch..s * ch + 3];
-            let one = half::f16::ONE.to_bits() as u32;
-            [
-                c[0].to_bits() as u32 | (c[1].to_bits() as u32) << 16,
-                c[2].to_bits() as u32 | one << 16,
-            ]
+        .map(|v| {
+            slot_of(g, v).map_or(0, |s| {
+                let c = &g.data[s * ch..s * ch + 3];
+                pack_rgb10([c[0].to_f32(), c[1].to_f32(), c[2].to_f32()])
+            })
         })
         .collect()
 }
 
-/// Packs a field for upload. Only view-independent RGB appearance renders
-/// exactly; other kinds are rejected with a message naming them.
+/// Colour kind bits (`GpuField::res[3]`): the appearance is sparse.
+pub const COLOR_SPARSE: u32 = 1;
+/// Colour kind bits: degree-2 spherical harmonics (else RGB).
+pub const COLOR_SH: u32 = 2;
+/// u32 words per SH grid point: 27 f16 coefficients and one pad.
+pub const SH_WORDS: usize = 14;
+
+fn slot_of(g: &ChannelGrid, v: usize) -> Option<usize> {
+    match &g.layout {
+        Layout::Dense => Some(v),
+        Layout::Sparse(ix) => ix.slot(v),
+    }
+}
+
+/// SH appearance for the shader: for sparse grids a table with slot + 1 per
+/// grid point (0 = not stored), then [`SH_WORDS`] words of f16 pairs per
+/// stored point (`[r0..r8, g0..g8, b0..b8]`, as `ChannelGrid`). Returns the
+/// words and where the coefficients start.
+fn sh_colors(g: &ChannelGrid, n: usize) -> Result<(Vec<u32>, u32)> {
+    ensure!(
+        g.channels == 27,
+        "SH appearance with {} channels (expected 27)",
+        g.channels
+    );
+    let mut out: Vec<u32> = match &g.layout {
+        Layout::Dense => Vec::new(),
+        Layout::Sparse(_) => (0..n)
+            .into_par_iter()
+            .map(|v| slot_of(g, v).map_or(0, |s| s as u32 + 1))
+            .collect(),
+    };
+    let start = out.len();
+    ensure!(
+        start + g.slots() * SH_WORDS < u32::MAX as usize,
+        "the SH appearance is too large for the GPU view"
+    );
+    out.extend(g.data.chunks(27).flat_map(|c| {
+        (0..SH_WORDS).map(move |w| {
+            let lo = c[2 * w].to_bits() as u32;
+            let hi = c.get(2 * w + 1).map_or(0, |h| h.to_bits() as u32);
+            lo | hi << 16
+        })
+    }));
+    Ok((out, start as u32))
+}
+
+/// Packs a field for upload: RGB or SH appearance (dense or sparse);
+/// VM + MLP appearance is rejected with a message naming it.
 pub fn pack_field(field: &Field) -> Result<PackedField> {
     let geom = field.geom();
     let n = geom.len();
-    let g = match &field.appearance {
-        Appearance::Rgb(g) => g,
-        Appearance::Sh2(_) => {
-            return Err(crate::Error::invalid(
-                "the GPU view does not render spherical-harmonics appearance yet (use the CPU renderer)",
-            ))
+    let (colors, color_kind, sh_start) = match &field.appearance {
+        Appearance::Rgb(g) => {
+            ensure!(g.channels >= 3, "RGB appearance with {} channels", g.channels);
+            (colors_of(g, n), sparse_bit(g), 0)
+        }
+        Appearance::Sh2(g) => {
+            let (c, start) = sh_colors(g, n)?;
+            (c, sparse_bit(g) | COLOR_SH, start)
         }
         Appearance::Vm { .. } => {
             return Err(crate::Error::invalid(
@@ -205,28 +266,12 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
             ))
         }
     };
-    ensure!(g.channels >= 3, "RGB appearance with {} channels", g.channels);
     let (dims, skip) = skip_grid(&field.density);
-    let mut aux: Vec<u32> = skip
+    let aux: Vec<u32> = skip
         .chunks(4)
         .map(|c| c.iter().enumerate().fold(0u32, |a, (i, &b)| a | (b as u32) << (8 * i)))
         .collect();
-    let (colors, sparse, bits_off, prefix_off) = match &g.layout {
-        Layout::Dense => (colors_of(g, n), false, 0, 0),
-        Layout::Sparse(ix) => {
-            let words = ix.bits().words();
-            let bits_off = aux.len() as u32;
-            aux.extend(words.iter().flat_map(|&w| [w as u32, (w >> 32) as u32]));
-            let prefix_off = aux.len() as u32;
-            let mut acc = 0u32;
-            for &w in words {
-                aux.push(acc);
-                acc += w.count_ones();
-            }
-            (colors_of(g, ix.count()), true, bits_off, prefix_off)
-        }
-    };
-    let (kind, shift) = match field.density.activation {
+    let (activation, shift) = match field.density.activation {
         Activation::Relu => (0.0, 0.0),
         Activation::Softplus { shift } => (1.0, shift),
     };
@@ -238,9 +283,9 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
         aux,
         info: GpuField {
             bounds_min: v4(b.min, shift),
-            bounds_max: v4(b.max, kind),
-            res: [geom.res[0] as u32, geom.res[1] as u32, geom.res[2] as u32, sparse as u32],
-            offsets: [0, 0, bits_off, prefix_off],
+            bounds_max: v4(b.max, activation),
+            res: [geom.res[0] as u32, geom.res[1] as u32, geom.res[2] as u32, color_kind],
+            offsets: [0, 0, sh_start, 0],
             skip: [dims[0] as u32, dims[1] as u32, dims[2] as u32, 0],
             skip_cell: v4(cell, 0.0),
         },
@@ -248,18 +293,14 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
 }
 
 /// Concatenates packed fields; returns the field infos with absolute offsets.
-pub fn concat_fields(fields: &[&PackedField]) -> (Vec<GpuField>, Vec<f32>, Vec<[u32; 2]>, Vec<u32>) {
+pub fn concat_fields(fields: &[&PackedField]) -> (Vec<GpuField>, Vec<f32>, Vec<u32>, Vec<u32>) {
     let mut infos = Vec::new();
     let (mut density, mut colors, mut aux) = (Vec::new(), Vec::new(), Vec::new());
     for p in fields {
         let mut info = p.info;
         let a = aux.len() as u32;
-        info.offsets = [
-            density.len() as u32,
-            colors.len() as u32,
-            info.offsets[2] + a,
-            info.offsets[3] + a,
-        ];
+        let c = colors.len() as u32;
+        info.offsets = [density.len() as u32, c, c + p.info.offsets[2], 0];
         info.skip[3] = a;
         density.extend_from_slice(&p.density);
         colors.extend_from_slice(&p.colors);
@@ -363,7 +404,9 @@ pub fn pack_layers(
                 );
                 let k = bitmaps.iter().position(|x| Arc::ptr_eq(x, bits)).unwrap_or(0);
                 if matches!(l.mask, Mask::Keep(_)) {
-                    let Some((a, z)) = keep_box(&l.field, bits) else { continue };
+                    let Some((a, z)) = keep_box(&l.field, bits) else {
+                        continue;
+                    };
                     (lo, hi) = (a, z);
                     (MASK_KEEP, bitmap_offs[k])
                 } else {
@@ -377,9 +420,9 @@ pub fn pack_layers(
         }
         let e = edit.unwrap_or_default();
         let ov = overlay.get(i).copied().unwrap_or_default();
-        let flags = (edit.is_some() as u32) * LAYER_COLOR_EDIT
-            | (ov.highlight as u32) * LAYER_HIGHLIGHT
-            | (ov.dim as u32) * LAYER_DIM;
+        let flag = |on: bool, bit: u32| if on { bit } else { 0 };
+        let flags =
+            flag(edit.is_some(), LAYER_COLOR_EDIT) | flag(ov.highlight, LAYER_HIGHLIGHT) | flag(ov.dim, LAYER_DIM);
         out.push(GpuLayer {
             to_local: affine_cols(&l.to_world.inverse()),
             info: [slot as u32, kind, offset, flags],
@@ -413,6 +456,38 @@ mod tests {
     }
 
     #[test]
+    fn sh_coefficients_pack_as_f16_pairs_behind_a_slot_table() {
+        let f = ball();
+        let g = f.geom();
+        let bits = Bitmap::from_fn(g.res, |i| i % 5 == 0);
+        let ix = Arc::new(RankIndex::new(bits.clone()));
+        let data: Vec<f16> = (0..ix.count() * 27).map(|k| f16::from_f32(k as f32 * 0.25)).collect();
+        let mut f2 = f.clone();
+        f2.appearance = Appearance::Sh2(ChannelGrid::sparse(g, 27, ix.clone(), data.clone()));
+        let p = pack_field(&f2).unwrap();
+        assert_eq!(p.info.res[3], COLOR_SH | COLOR_SPARSE);
+        let start = p.info.offsets[2] as usize;
+        assert_eq!(start, g.len());
+        // The shader's lookup: table entry = slot + 1, then half k of the slot.
+        for v in [0, 5, 7, 100, g.len() - 1] {
+            let slot = (p.colors[v] as usize).checked_sub(1);
+            assert_eq!(slot, ix.slot(v), "voxel {v}");
+            let Some(s) = slot else { continue };
+            for k in [0, 8, 9, 26] {
+                let w = p.colors[start + s * SH_WORDS + k / 2];
+                let h = if k % 2 == 0 { w & 0xffff } else { w >> 16 };
+                assert_eq!(h as u16, data[s * 27 + k].to_bits());
+            }
+        }
+        // Offsets stay right after concatenation behind another field.
+        let rgb = pack_field(&f).unwrap();
+        let (infos, _, colors, _) = concat_fields(&[&rgb, &p]);
+        assert_eq!(infos[1].offsets[1] as usize, rgb.colors.len());
+        assert_eq!(infos[1].offsets[2] as usize, rgb.colors.len() + start);
+        assert_eq!(colors.len(), rgb.colors.len() + p.colors.len());
+    }
+
+    #[test]
     fn skip_grid_holds_chebyshev_distances_to_density() {
         let f = ball();
         let (dims, d) = skip_grid(&f.density);
@@ -428,14 +503,14 @@ mod tests {
             .map(|c| ((c % 8) as i32, ((c / 8) % 8) as i32, (c / 64) as i32))
             .collect();
         assert!(!occ.is_empty());
-        for c in 0..512usize {
+        for (c, &got) in d.iter().enumerate() {
             let p = ((c % 8) as i32, ((c / 8) % 8) as i32, (c / 64) as i32);
             let want = occ
                 .iter()
                 .map(|q| (p.0 - q.0).abs().max((p.1 - q.1).abs()).max((p.2 - q.2).abs()))
                 .min()
                 .unwrap();
-            assert_eq!(d[c] as i32, want.min(SKIP_MAX as i32), "cell {p:?}");
+            assert_eq!(got as i32, want.min(SKIP_MAX as i32), "cell {p:?}");
         }
         // Cells marked empty really have no density at their grid points.
         let g = f.geom();
@@ -452,49 +527,29 @@ mod tests {
     }
 
     #[test]
-    fn dense_colours_cover_every_grid_point() {
+    fn colours_cover_every_grid_point_with_a_stored_flag() {
         let f = ball();
         let p = pack_field(&f).unwrap();
         assert_eq!(p.colors.len(), 17 * 17 * 17);
         let g = GridGeom::new(f.bounds(), [17; 3]);
         let i = g.index(16, 0, 8);
         let want = g.point_of(i) * 0.5 + 0.5;
-        let r = f16::from_bits(p.colors[i][0] as u16).to_f32();
-        let a = f16::from_bits((p.colors[i][1] >> 16) as u16).to_f32();
+        let r = (p.colors[i] & 1023) as f32 / 1023.0;
         assert!((r - want.x).abs() < 1e-3);
-        assert_eq!(a, 1.0);
+        assert_eq!(p.colors[i] >> 30, 1);
         assert_eq!(p.info.res, [17, 17, 17, 0]);
-    }
-
-    #[test]
-    fn sparse_colours_keep_rank_order_and_prefixes() {
-        let f = ball();
-        let g = f.geom();
-        let bits = Bitmap::from_fn(g.res, |i| i % 7 == 0 || i == 100);
+        // Sparse appearance: unstored points carry flag 0.
+        let bits = Bitmap::from_fn(g.res, |i| i % 7 == 0);
         let ix = Arc::new(RankIndex::new(bits.clone()));
-        let data: Vec<f16> = bits
-            .ones()
-            .flat_map(|i| [f16::from_f32(i as f32 / 5000.0), f16::ZERO, f16::ONE])
-            .collect();
+        let data: Vec<f16> = bits.ones().flat_map(|_| [f16::ONE, f16::ZERO, f16::ONE]).collect();
         let mut f2 = f.clone();
-        f2.appearance = Appearance::Rgb(ChannelGrid::sparse(g, 3, ix.clone(), data));
+        f2.appearance = Appearance::Rgb(ChannelGrid::sparse(g, 3, ix, data));
         let p = pack_field(&f2).unwrap();
         assert_eq!(p.info.res[3], 1);
-        assert_eq!(p.colors.len(), ix.count());
-        // Emulate the shader's slot lookup for every voxel.
-        let [_, _, bo, po] = p.info.offsets;
         for v in 0..g.len() {
-            let w = v >> 6;
-            let (lo, hi) = (p.aux[bo as usize + 2 * w], p.aux[bo as usize + 2 * w + 1]);
-            let b = (v & 63) as u32;
-            let (set, below) = if b < 32 {
-                ((lo >> b) & 1, (lo & ((1u32 << b) - 1)).count_ones())
-            } else {
-                ((hi >> (b - 32)) & 1, lo.count_ones() + (hi & ((1u32 << (b - 32)) - 1)).count_ones())
-            };
-            let slot = (set == 1).then(|| p.aux[po as usize + w] + below);
-            assert_eq!(slot.map(|s| s as usize), ix.slot(v), "voxel {v}");
+            assert_eq!(p.colors[v] >> 30 == 1, v % 7 == 0, "voxel {v}");
         }
+        assert_eq!(p.colors[0], pack_rgb10([1.0, 0.0, 1.0]));
     }
 
     #[test]
