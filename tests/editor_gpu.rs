@@ -181,7 +181,10 @@ fn gpu_matches_cpu_with_sh_appearance_softplus_density_and_two_fields() {
     let comp = Scene::new(vec![rest.clone(), other]);
     // The ball is in view where the mug was.
     let seen = psnr(&cpu(&comp, &cam), &cpu(&Scene::new(vec![rest]), &cam));
-    assert!(seen < 40.0, "the ball is not in view (PSNR {seen:.1} dB against the scene without it)");
+    assert!(
+        seen < 40.0,
+        "the ball is not in view (PSNR {seen:.1} dB against the scene without it)"
+    );
     for (name, scene) in [
         ("sparse SH tabletop", Scene::single(table.clone())),
         ("SH tabletop, mug removed, + softplus SH ball", comp),

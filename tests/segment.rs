@@ -30,7 +30,9 @@ fn kmeans_finds_separated_clusters() {
     let got = kmeans(&pts, 2, 3, 11, 100);
     assert_eq!(got.len(), 3);
     for c in centres {
-        let best = (0..3).map(|k| (got.row(k)[0] - c[0]).hypot(got.row(k)[1] - c[1])).fold(f32::INFINITY, f32::min);
+        let best = (0..3)
+            .map(|k| (got.row(k)[0] - c[0]).hypot(got.row(k)[1] - c[1]))
+            .fold(f32::INFINITY, f32::min);
         assert!(best < 0.2, "centre {c:?} not found: {:?}", got.data);
     }
     // Deterministic for a seed.
@@ -60,7 +62,13 @@ fn two_boxes(res: usize) -> Field {
     };
     FieldBuilder::new(unit_box(), [res; 3]).build(
         |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
-        |p| if p.x < 0.0 { Vec3::new(0.8, 0.2, 0.2) } else { Vec3::new(0.2, 0.2, 0.8) },
+        |p| {
+            if p.x < 0.0 {
+                Vec3::new(0.8, 0.2, 0.2)
+            } else {
+                Vec3::new(0.2, 0.2, 0.8)
+            }
+        },
         Some((4, &feat)),
     )
 }
@@ -69,7 +77,10 @@ fn two_boxes(res: usize) -> Field {
 fn nnfm_selects_voxels_with_matching_features() {
     let f = two_boxes(24);
     let cache = f.feature_cache().unwrap();
-    let centre = Centroids { dim: 4, data: vec![1.0, 0.0, 0.0, 0.0] };
+    let centre = Centroids {
+        dim: 4,
+        data: vec![1.0, 0.0, 0.0, 0.0],
+    };
     let seed = nnfm_seed(&cache, &centre, 0.4, 0.1);
     assert!(seed.count() > 0);
     for v in 0..f.geom().len() {
@@ -103,14 +114,19 @@ fn growth_stops_at_a_feature_edge_and_crosses_a_smooth_region() {
     block(&mut mask);
     let steps = Grower::new(&cache, GrowParams::default()).converge(&mut mask, 1000);
     assert!(steps > 3);
-    let left: usize = (0..g.len()).filter(|&v| g.point_of(v).x < 0.0 && cache.index.slot(v).is_some()).count();
+    let left: usize = (0..g.len())
+        .filter(|&v| g.point_of(v).x < 0.0 && cache.index.slot(v).is_some())
+        .count();
     let right_in_mask = mask.ones().filter(|&v| g.point_of(v).x > 0.0).count();
     assert_eq!(mask.count(), left, "the whole left box (smooth features) is grown");
     assert_eq!(right_in_mask, 0, "growth must not cross the feature edge");
     // Without the feature term (huge σ_φ) growth floods both boxes.
     let mut flood = Bitmap::new(g.res);
     block(&mut flood);
-    let p = GrowParams { sigma_f: 1e9, ..Default::default() };
+    let p = GrowParams {
+        sigma_f: 1e9,
+        ..Default::default()
+    };
     Grower::new(&cache, p).converge(&mut flood, 1000);
     assert_eq!(flood.count(), cache.len());
 }
@@ -136,7 +152,12 @@ fn random_field(seed: u64, res: usize) -> Field {
         }
     };
     FieldBuilder::new(unit_box(), [res; 3]).build(
-        move |p| blobs.iter().map(|(c, r, _)| if (p - *c).length() < *r { 30.0 } else { 0.0 }).sum(),
+        move |p| {
+            blobs
+                .iter()
+                .map(|(c, r, _)| if (p - *c).length() < *r { 30.0 } else { 0.0 })
+                .sum()
+        },
         |_| Vec3::ONE,
         Some((6, &feat)),
     )
@@ -167,7 +188,11 @@ fn frontier_growth_equals_dense_growth_voxel_for_voxel() {
         }
         let start = a.count();
         let mut b = a.clone();
-        let params = GrowParams { sigma_f: 5.0 + seed as f32, sigma_s: 1.0, tau: 0.1 + 0.02 * seed as f32 };
+        let params = GrowParams {
+            sigma_f: 5.0 + seed as f32,
+            sigma_s: 1.0,
+            tau: 0.1 + 0.02 * seed as f32,
+        };
         let mut grower = Grower::new(&cache, params);
         for step in 0..200 {
             let na = grower.step(&mut a);
@@ -187,7 +212,14 @@ fn stroke_on(field: &Field, target: Vec3, object: &str, polarity: Polarity) -> S
     let cam = Camera::look_at(k, Vec3::new(0.2, 0.4, 3.0), Vec3::ZERO, Vec3::Y);
     let (px, _) = cam.project(target).unwrap();
     assert!(field.bounds().contains(target));
-    Stroke { camera: cam, points: vec![px, px + Vec2::new(2.0, 1.0)], radius: 1, polarity, object: object.into(), joined: true }
+    Stroke {
+        camera: cam,
+        points: vec![px, px + Vec2::new(2.0, 1.0)],
+        radius: 1,
+        polarity,
+        object: object.into(),
+        joined: true,
+    }
 }
 
 #[test]
@@ -195,7 +227,10 @@ fn positive_then_negative_stroke() {
     let f = Arc::new(two_boxes(32));
     let cache = f.feature_cache().unwrap();
     let scene = Scene::single(f.clone());
-    let params = SegmentParams { growth: Growth::Converge, ..Default::default() };
+    let params = SegmentParams {
+        growth: Growth::Converge,
+        ..Default::default()
+    };
     // A positive stroke on the left box gives exactly the left box.
     let s = stroke_on(&f, Vec3::new(-0.3, 0.2, 0.6), "left", Polarity::Positive);
     let (region, t) = region_from_stroke(&scene, &cache, &s, &params).unwrap();
@@ -229,12 +264,19 @@ fn bad_strokes_are_rejected_with_a_message() {
     assert!(e.contains("empty space"), "{e}");
     s.points = vec![Vec2::new(f32::NAN, 1.0)];
     assert!(stroke_pixels(&s).is_err());
-    let bad = SegmentParams { theta: -1.0, ..Default::default() };
+    let bad = SegmentParams {
+        theta: -1.0,
+        ..Default::default()
+    };
     assert!(bad.validate().unwrap_err().to_string().contains("theta"));
     // JSON documents.
-    assert!(parse_strokes("{").unwrap_err().to_string().contains("not a stroke document"));
+    assert!(parse_strokes("{")
+        .unwrap_err()
+        .to_string()
+        .contains("not a stroke document"));
     assert!(parse_strokes("[]").unwrap_err().to_string().contains("no strokes"));
-    let no_size = r#"{"camera": {"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]], "fl_x": 50}, "points": [[1,2]]}"#;
+    let no_size =
+        r#"{"camera": {"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]], "fl_x": 50}, "points": [[1,2]]}"#;
     assert!(parse_strokes(no_size).unwrap_err().to_string().contains("'w' and 'h'"));
     let typo = r#"{"camera": {"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]], "fl_x": 50, "w": 10, "h": 10}, "points": [[1,2]], "polarty": "negative"}"#;
     assert!(parse_strokes(typo).unwrap_err().to_string().contains("polarty"));

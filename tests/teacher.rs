@@ -47,7 +47,11 @@ fn precomputed_maps_go_through_pca_and_the_cache() {
     let (got, r) = teacher_features(&src, &refs, &paths, 5, Some(&cache), &|_, _| ()).unwrap();
     assert!(!r.from_cache);
     assert_eq!((got.channels, got.maps.len(), r.raw_channels), (5, 2, 5));
-    assert_eq!((got.maps[1].width, got.maps[1].height), (w, h), "[C, h, w] is read channels-first");
+    assert_eq!(
+        (got.maps[1].width, got.maps[1].height),
+        (w, h),
+        "[C, h, w] is read channels-first"
+    );
     // Keeping every component is a rotation about the mean: distances
     // between all feature vectors are preserved, across both layouts.
     let raw: Vec<Vec<f32>> = (0..2)
@@ -57,7 +61,10 @@ fn precomputed_maps_go_through_pca_and_the_cache() {
     let dist = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f32>().sqrt();
     for i in 0..raw.len() {
         for j in 0..raw.len() {
-            assert!((dist(&raw[i], &raw[j]) - dist(proj[i], proj[j])).abs() < 1e-3, "pair {i},{j}");
+            assert!(
+                (dist(&raw[i], &raw[j]) - dist(proj[i], proj[j])).abs() < 1e-3,
+                "pair {i},{j}"
+            );
         }
     }
     // The second call reads the cache and returns the same maps.
@@ -78,13 +85,21 @@ fn bad_teacher_inputs_are_rejected_with_their_reason() {
     let refs: Vec<&Image> = img.iter().collect();
     let paths = vec![PathBuf::from("a.png")];
     let src = TeacherSource::Precomputed(dir.path().to_path_buf());
-    let err = |src: &TeacherSource| teacher_features(src, &refs, &paths, 2, None, &|_, _| ()).unwrap_err().to_string();
+    let err = |src: &TeacherSource| {
+        teacher_features(src, &refs, &paths, 2, None, &|_, _| ())
+            .unwrap_err()
+            .to_string()
+    };
     assert!(err(&src).contains("no a.npy"), "{}", err(&src));
     write_npy(&dir.path().join("a.npy"), &[4, 4], &[0.0; 16]);
     assert!(err(&src).contains("not [h, w, C]"), "{}", err(&src));
     std::fs::write(dir.path().join("a.npy"), b"\x93NUMPY\x01\x00garbage").unwrap();
     assert!(err(&src).contains("a.npy"), "{}", err(&src));
-    write_npy(&dir.path().join("a.npy"), &[2, 2, 3], &[0.0, 1.0, f32::NAN, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+    write_npy(
+        &dir.path().join("a.npy"),
+        &[2, 2, 3],
+        &[0.0, 1.0, f32::NAN, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
+    );
     assert!(err(&src).contains("finite"), "{}", err(&src));
     assert!(TeacherSource::from_path(&dir.path().join("missing.onnx"), "", 224).is_err());
     let not_onnx = dir.path().join("x.onnx");
@@ -94,7 +109,9 @@ fn bad_teacher_inputs_are_rejected_with_their_reason() {
 }
 
 fn lego_view(name: &str) -> Option<Image> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nerf_synthetic/lego/train").join(name);
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/nerf_synthetic/lego/train")
+        .join(name);
     let mut img = Image::load(&p).ok()?;
     img.composite([1.0; 3]);
     Some(img)
@@ -117,7 +134,11 @@ fn the_default_vit_tells_the_object_from_the_background() {
         for px in 0..16 {
             let (x0, y0) = (px * img.width as usize / 16, py * img.height as usize / 16);
             let n = img.width as usize / 16;
-            let a: f32 = (0..n).flat_map(|y| (0..n).map(move |x| (x, y))).map(|(x, y)| alpha[(y0 + y) * img.width as usize + x0 + x]).sum::<f32>() / (n * n) as f32;
+            let a: f32 = (0..n)
+                .flat_map(|y| (0..n).map(move |x| (x, y)))
+                .map(|(x, y)| alpha[(y0 + y) * img.width as usize + x0 + x])
+                .sum::<f32>()
+                / (n * n) as f32;
             let f = map.data[(py * 16 + px) * c..(py * 16 + px + 1) * c].to_vec();
             if a > 0.99 {
                 fg.push(f);
@@ -126,7 +147,12 @@ fn the_default_vit_tells_the_object_from_the_background() {
             }
         }
     }
-    assert!(fg.len() > 10 && bg.len() > 10, "{} object and {} background patches", fg.len(), bg.len());
+    assert!(
+        fg.len() > 10 && bg.len() > 10,
+        "{} object and {} background patches",
+        fg.len(),
+        bg.len()
+    );
     let cos = |a: &[f32], b: &[f32]| {
         let d: f32 = a.iter().zip(b).map(|(x, y)| x * y).sum();
         d / (a.iter().map(|x| x * x).sum::<f32>().sqrt() * b.iter().map(|x| x * x).sum::<f32>().sqrt())
@@ -142,5 +168,8 @@ fn the_default_vit_tells_the_object_from_the_background() {
     };
     let (within, across) = (mean(&fg, &fg), mean(&fg, &bg));
     eprintln!("object-object cosine {within:.3}, object-background {across:.3}");
-    assert!(within > across + 0.1, "object patches are not closer to each other ({within:.3}) than to the background ({across:.3})");
+    assert!(
+        within > across + 0.1,
+        "object patches are not closer to each other ({within:.3}) than to the background ({across:.3})"
+    );
 }

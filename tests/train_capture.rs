@@ -54,7 +54,12 @@ fn training_and_distillation_recover_a_rendered_demo_scene() {
     let last = t.history.last().unwrap().psnr;
     let fitted = Scene::single(Arc::new(t.model.to_field()));
     let demo = isrf::demo::build("tabletop", 32, 0).unwrap();
-    let test_cams: Vec<Camera> = demo.eval_cameras.frames.iter().map(|f| f.camera.downscaled(10)).collect();
+    let test_cams: Vec<Camera> = demo
+        .eval_cameras
+        .frames
+        .iter()
+        .map(|f| f.camera.downscaled(10))
+        .collect();
     let opts = RenderOptions {
         features: true,
         ..Default::default()
@@ -75,12 +80,22 @@ fn training_and_distillation_recover_a_rendered_demo_scene() {
         first.unwrap()
     );
     assert!(mean >= 25.0, "held-out PSNR {mean:.1} dB is below 25 dB");
-    assert!(mean_cos >= 0.9, "distilled features agree with the truth only to cosine {mean_cos:.3}");
+    assert!(
+        mean_cos >= 0.9,
+        "distilled features agree with the truth only to cosine {mean_cos:.3}"
+    );
     // The held-out views are not trivially background: the truth has content.
     let want = render(&capture.truth, &test_cams[0], &RenderOptions::default()).unwrap();
     let blank_psnr = psnr(&vec![Vec3::ONE; want.out.color.len()], &want.out.color);
     assert!(blank_psnr < 20.0, "a blank image already scores {blank_psnr:.1} dB");
     // Before distillation there are no features to agree with.
-    let colour_only = demo_trainer(&capture, TrainConfig { iters: 1, ..Default::default() }).unwrap();
+    let colour_only = demo_trainer(
+        &capture,
+        TrainConfig {
+            iters: 1,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     assert!(colour_only.model.features.is_none());
 }

@@ -107,7 +107,11 @@ impl StageRow {
 pub fn run_and_measure(trainer: &mut Trainer, mut on_step: impl FnMut(&StepStats)) -> Result<Vec<StageRow>> {
     let mut rows: Vec<StageRow> = vec![];
     while !trainer.is_done() {
-        let phase = if trainer.in_feature_phase() { "features" } else { "radiance" };
+        let phase = if trainer.in_feature_phase() {
+            "features"
+        } else {
+            "radiance"
+        };
         let s = trainer.step()?;
         on_step(&s);
         let res = trainer.model.geom.res;

@@ -209,10 +209,16 @@ fn run_train(a: TrainArgs) -> Result<()> {
                 ..Default::default()
             };
             config.validate()?;
-            ("tabletop demo capture, 40 views at 200x150".to_string(), demo_trainer(&capture, config)?)
+            (
+                "tabletop demo capture, 40 views at 200x150".to_string(),
+                demo_trainer(&capture, config)?,
+            )
         }
     };
-    println!("trainer throughput on {what}, {threads} rayon threads, batch {}", trainer.config.batch);
+    println!(
+        "trainer throughput on {what}, {threads} rayon threads, batch {}",
+        trainer.config.batch
+    );
     let rows = run_and_measure(&mut trainer, |_| ())?;
     print!("{}", stage_table(&rows));
     if let Some(l) = isrf::bench::load_average() {

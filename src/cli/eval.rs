@@ -112,7 +112,11 @@ fn run_alpha(a: &Args, dataset: &std::path::Path) -> Result<()> {
     let mut views = vec![];
     for i in ds.indices(Split::Val) {
         let Some(alpha) = ds.images[i].alpha.as_deref() else {
-            bail!("{}: view {} has no alpha channel", dataset.display(), ds.cameras.frames[i].name);
+            bail!(
+                "{}: view {} has no alpha channel",
+                dataset.display(),
+                ds.cameras.frames[i].name
+            );
         };
         views.push((ds.cameras.frames[i].camera, alpha, ds.cameras.frames[i].name.clone()));
     }

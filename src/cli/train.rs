@@ -201,7 +201,10 @@ pub fn run(a: Args) -> Result<()> {
         ds.indices(isrf::data::Split::Train).len(),
         t0.elapsed().as_secs_f64()
     );
-    let ckpt = a.checkpoint.clone().unwrap_or_else(|| sibling(&a.out, ".ckpt.safetensors"));
+    let ckpt = a
+        .checkpoint
+        .clone()
+        .unwrap_or_else(|| sibling(&a.out, ".ckpt.safetensors"));
     let mut session = if a.resume {
         if !ckpt.is_file() {
             bail!("--resume: no checkpoint at {}", ckpt.display());
@@ -222,14 +225,22 @@ pub fn run(a: Args) -> Result<()> {
 fn attach_teacher(session: &mut Session, src: &TeacherSource, a: &Args) -> Result<()> {
     let n = session.dataset.indices(isrf::data::Split::Train).len();
     let bar = ProgressBar::new(n as u64);
-    bar.set_style(ProgressStyle::with_template("teacher {bar:30} {pos}/{len} images  {elapsed}").expect("valid template"));
+    bar.set_style(
+        ProgressStyle::with_template("teacher {bar:30} {pos}/{len} images  {elapsed}").expect("valid template"),
+    );
     let cache = if a.no_cache { None } else { default_cache_dir() };
-    let r = session.attach_teacher(src, a.feature_dims, cache.as_deref(), &|i, _| bar.set_position(i as u64))?;
+    let r = session.attach_teacher(src, a.feature_dims, cache.as_deref(), &|i, _| {
+        bar.set_position(i as u64)
+    })?;
     bar.finish_and_clear();
     eprintln!(
         "teacher {}: {} → {} channels by PCA ({:.1} % of the variance), {}×{} maps, {:.1} s{}",
         r.source,
-        if r.from_cache { "cached".to_string() } else { r.raw_channels.to_string() },
+        if r.from_cache {
+            "cached".to_string()
+        } else {
+            r.raw_channels.to_string()
+        },
         r.channels,
         100.0 * r.explained,
         r.map_size[0],
@@ -256,8 +267,16 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
     while !session.trainer.is_done() {
         let s = session.trainer.step()?;
         let k = 0.05;
-        loss_avg = if s.iter <= 1 { s.loss } else { (1.0 - k) * loss_avg + k * s.loss };
-        psnr_avg = if s.iter <= 1 { s.psnr } else { (1.0 - k) * psnr_avg + k * s.psnr };
+        loss_avg = if s.iter <= 1 {
+            s.loss
+        } else {
+            (1.0 - k) * loss_avg + k * s.loss
+        };
+        psnr_avg = if s.iter <= 1 {
+            s.psnr
+        } else {
+            (1.0 - k) * psnr_avg + k * s.psnr
+        };
         if a.eval_every > 0 && (s.iter.is_multiple_of(a.eval_every) || s.iter == total) {
             eval_psnr = session.quick_eval(2);
             if let Some(p) = eval_psnr {
@@ -278,7 +297,11 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
         );
         // Logs (no terminal) get a plain line now and then instead of a bar.
         if !tty && (s.iter.is_multiple_of(100) || s.iter == total) {
-            eprintln!("iteration {}/{total} {:.0} s  {msg}", s.iter, started.elapsed().as_secs_f64());
+            eprintln!(
+                "iteration {}/{total} {:.0} s  {msg}",
+                s.iter,
+                started.elapsed().as_secs_f64()
+            );
         }
         bar.set_message(msg);
         bar.set_position(s.iter as u64);
@@ -336,7 +359,11 @@ fn finish(session: &Session, a: &Args, ckpt: &Path) -> Result<()> {
     // drawn on a dataset image (`isrf segment --cameras`) and for rendering.
     let all = sibling(&a.out, ".cameras.json");
     session.dataset.cameras.save(&all)?;
-    eprintln!("all {} cameras: {}", session.dataset.cameras.frames.len(), all.display());
+    eprintln!(
+        "all {} cameras: {}",
+        session.dataset.cameras.frames.len(),
+        all.display()
+    );
     let bg = session.dataset.background;
     if bg != [1.0; 3] {
         eprintln!(

@@ -363,7 +363,11 @@ pub struct AlphaReport {
 /// Renders the object opacity of `object` (a bitmap of `field`) from every
 /// view in `views` (camera, alpha, name) and scores `opacity > 0.5` against
 /// `alpha > 0.5`.
-pub fn evaluate_alpha(field: Arc<Field>, object: Arc<Bitmap>, views: &[(Camera, &[f32], String)]) -> Result<AlphaReport> {
+pub fn evaluate_alpha(
+    field: Arc<Field>,
+    object: Arc<Bitmap>,
+    views: &[(Camera, &[f32], String)],
+) -> Result<AlphaReport> {
     crate::ensure!(!views.is_empty(), "no views with alpha to evaluate on");
     crate::ensure!(
         object.res() == field.res(),

@@ -328,7 +328,10 @@ fn frame_camera(set: &CameraSet, doc: &CameraDoc) -> Result<Camera> {
         .find(|f| f.name == want || f.base_name() == base(want))
         .ok_or_else(|| {
             let names: Vec<String> = set.frames.iter().take(6).map(|f| f.base_name()).collect();
-            Error::invalid(format!("no camera named '{want}' in the camera set (it has {}, ...)", names.join(", ")))
+            Error::invalid(format!(
+                "no camera named '{want}' in the camera set (it has {}, ...)",
+                names.join(", ")
+            ))
         })?;
     let k = frame.camera.intrinsics;
     let (Some(w), Some(h)) = (doc.w, doc.h) else {

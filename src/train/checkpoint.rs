@@ -186,14 +186,13 @@ pub fn load(path: &Path) -> Result<Restored> {
         }
         None => None,
     };
-    let hist_len = t
-        .st
-        .tensor("history")
-        .map_err(|_| bad("missing tensor 'history'".into()))?
-        .shape()
-        .first()
-        .copied()
-        .unwrap_or(0);
+    let hist_len =
+        t.st.tensor("history")
+            .map_err(|_| bad("missing tensor 'history'".into()))?
+            .shape()
+            .first()
+            .copied()
+            .unwrap_or(0);
     if hist_len % HIST != 0 {
         return Err(bad(format!("history has {hist_len} values, not a multiple of {HIST}")));
     }

@@ -280,22 +280,8 @@ impl Model {
                 }
             }
         });
-        let features = self.features.as_ref().map(|f| f.clone());
-        let mut m = Model {
-            geom,
-            shift: self.shift,
-            degree: self.degree,
-            density,
-            sh,
-            features,
-            active,
-            cells: vec![],
-            blocks: vec![],
-            block_dims: [1; 3],
-        };
-        m.clear_tail();
-        m.refresh_masks();
-        Ok(m)
+        let features = self.features.clone();
+        Model::from_parts(geom, self.shift, self.degree, density, sh, active, features)
     }
 
     /// The same model with SH degree raised to `degree` (new coefficients 0).

@@ -25,14 +25,20 @@ impl Pca {
     /// the same data always gives the same basis.
     pub fn fit(rows: &[f32], in_dim: usize, out_dim: usize) -> Result<Pca> {
         ensure!(in_dim >= 1, "PCA needs at least one input channel");
-        ensure!(rows.len().is_multiple_of(in_dim), "PCA rows are not a multiple of {in_dim} channels");
+        ensure!(
+            rows.len().is_multiple_of(in_dim),
+            "PCA rows are not a multiple of {in_dim} channels"
+        );
         let n = rows.len() / in_dim;
         ensure!(n >= 2, "PCA needs at least two feature vectors, got {n}");
         ensure!(
             (1..=in_dim).contains(&out_dim),
             "cannot keep {out_dim} components of {in_dim}-channel features"
         );
-        ensure!(rows.iter().all(|v| v.is_finite()), "teacher features contain NaN or infinity");
+        ensure!(
+            rows.iter().all(|v| v.is_finite()),
+            "teacher features contain NaN or infinity"
+        );
         let mean = column_mean(rows, in_dim);
         let cov = covariance(rows, in_dim, &mean);
         let eig = SymmetricEigen::new(DMatrix::from_row_slice(in_dim, in_dim, &cov));
@@ -43,7 +49,10 @@ impl Pca {
         let mut basis = Vec::with_capacity(out_dim * in_dim);
         for &k in &order[..out_dim] {
             let col = eig.eigenvectors.column(k);
-            let big = col.iter().copied().fold(0.0f64, |m, v| if v.abs() > m.abs() { v } else { m });
+            let big = col
+                .iter()
+                .copied()
+                .fold(0.0f64, |m, v| if v.abs() > m.abs() { v } else { m });
             let sign = if big < 0.0 { -1.0 } else { 1.0 };
             basis.extend(col.iter().map(|v| (sign * v) as f32));
         }

@@ -31,7 +31,11 @@ pub fn save_plot(path: &Path, history: &[StepStats], evals: &[EvalPoint]) -> Res
 pub fn draw(history: &[StepStats], evals: &[EvalPoint]) -> RgbImage {
     let h = 2 * (PANEL_H + TOP + BOTTOM);
     let mut img = RgbImage::from_pixel(W, h, Rgb([255, 255, 255]));
-    let xmax = history.last().map_or(1, |s| s.iter).max(evals.iter().map(|e| e.0).max().unwrap_or(1)).max(1) as f32;
+    let xmax = history
+        .last()
+        .map_or(1, |s| s.iter)
+        .max(evals.iter().map(|e| e.0).max().unwrap_or(1))
+        .max(1) as f32;
     let loss: Vec<(f32, f32)> = history
         .iter()
         .filter(|s| s.loss > 0.0 && s.loss.is_finite())
@@ -44,7 +48,15 @@ pub fn draw(history: &[StepStats], evals: &[EvalPoint]) -> RgbImage {
         .collect();
     let ev: Vec<(f32, f32)> = evals.iter().map(|&(i, p)| (i as f32, p)).collect();
     panel(&mut img, 0, "LOSS LOG10", &loss, &[], xmax, [200, 60, 40]);
-    panel(&mut img, PANEL_H + TOP + BOTTOM, "PSNR DB", &psnr, &ev, xmax, [40, 90, 200]);
+    panel(
+        &mut img,
+        PANEL_H + TOP + BOTTOM,
+        "PSNR DB",
+        &psnr,
+        &ev,
+        xmax,
+        [40, 90, 200],
+    );
     img
 }
 
@@ -75,7 +87,14 @@ fn panel(img: &mut RgbImage, y0: u32, title: &str, pts: &[(f32, f32)], dots: &[(
         text(img, 4, (py - 5).max(0) as u32, &format!("{v:.2}"), 2, [60, 60, 60]);
         let it = xmax * k as f32 / 4.0;
         let (px, _) = map(it, lo);
-        text(img, (px - 10).max(0) as u32, y_hi + 8, &format!("{}", it.round() as i64), 2, [60, 60, 60]);
+        text(
+            img,
+            (px - 10).max(0) as u32,
+            y_hi + 8,
+            &format!("{}", it.round() as i64),
+            2,
+            [60, 60, 60],
+        );
     }
     hline(img, x_lo, x_hi, y_hi as i64, [0, 0, 0]);
     for y in y_lo..=y_hi {

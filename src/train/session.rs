@@ -96,7 +96,11 @@ fn data_key(ds: &Dataset) -> String {
 
 fn train_rays(ds: &Dataset) -> Result<RaySet> {
     let idx = ds.indices(Split::Train);
-    crate::ensure!(!idx.is_empty(), "{}: the dataset has no training views", ds.root.display());
+    crate::ensure!(
+        !idx.is_empty(),
+        "{}: the dataset has no training views",
+        ds.root.display()
+    );
     let views: Vec<(Camera, &crate::data::Image)> = idx
         .iter()
         .map(|&i| (ds.cameras.frames[i].camera, &ds.images[i]))
@@ -119,16 +123,18 @@ impl Session {
 
     /// Continues from a checkpoint; `iters` / `feature_iters` may extend the
     /// run. The checkpoint must come from the same data.
-    pub fn resume(dataset: Dataset, ckpt: &Path, iters: Option<usize>, feature_iters: Option<usize>) -> Result<Session> {
+    pub fn resume(
+        dataset: Dataset,
+        ckpt: &Path,
+        iters: Option<usize>,
+        feature_iters: Option<usize>,
+    ) -> Result<Session> {
         let r = checkpoint::load(ckpt)?;
         let key = data_key(&dataset);
         if r.state.data != key {
             return Err(Error::bad_file(
                 ckpt,
-                format!(
-                    "checkpoint was trained on different data ({}), not {key}",
-                    r.state.data
-                ),
+                format!("checkpoint was trained on different data ({}), not {key}", r.state.data),
             ));
         }
         let mut config = r.state.config.clone();
@@ -197,7 +203,9 @@ impl Session {
             return None;
         }
         let n = self.eval_views.len();
-        let pick: Vec<usize> = (0..max_views.min(n)).map(|k| self.eval_views[k * n / max_views.min(n)]).collect();
+        let pick: Vec<usize> = (0..max_views.min(n))
+            .map(|k| self.eval_views[k * n / max_views.min(n)])
+            .collect();
         let mut se = 0.0f64;
         let mut count = 0usize;
         for i in pick {
@@ -250,7 +258,11 @@ impl Session {
     /// The held-out cameras as a camera set (NDC included), for `isrf render`.
     pub fn eval_cameras(&self) -> CameraSet {
         CameraSet {
-            frames: self.eval_views.iter().map(|&i| self.dataset.cameras.frames[i].clone()).collect(),
+            frames: self
+                .eval_views
+                .iter()
+                .map(|&i| self.dataset.cameras.frames[i].clone())
+                .collect(),
         }
     }
 

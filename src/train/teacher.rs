@@ -89,7 +89,10 @@ impl TeacherSource {
                 size,
             })
         } else {
-            Err(Error::bad_file(path, "teacher not found (expected an .onnx file or a folder of .npy/.npz maps)"))
+            Err(Error::bad_file(
+                path,
+                "teacher not found (expected an .onnx file or a folder of .npy/.npz maps)",
+            ))
         }
     }
 
@@ -97,7 +100,10 @@ impl TeacherSource {
         match self {
             TeacherSource::Onnx { path, output, size } => {
                 let (len, modified) = file_stamp(path);
-                format!("onnx {} ({len} bytes, modified {modified}) output {output} size {size}", path.display())
+                format!(
+                    "onnx {} ({len} bytes, modified {modified}) output {output} size {size}",
+                    path.display()
+                )
             }
             TeacherSource::Precomputed(dir) => format!("precomputed {}", dir.display()),
         }
@@ -227,15 +233,23 @@ fn cache_key(source: &TeacherSource, images: &[&Image], dims: usize) -> String {
 
 /// 64-bit FNV-1a: a short stable file name for a long key.
 fn fnv(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3))
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+    })
 }
 
 /// Reads the precomputed map of every image from `dir`.
 fn precomputed(dir: &Path, images: &[&Image], paths: &[PathBuf]) -> Result<Vec<FeatureMap>> {
     let mut maps = Vec::with_capacity(images.len());
     for (img, p) in images.iter().zip(paths) {
-        let name = p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        let stem = p.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = p
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let stem = p
+            .file_stem()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let file = [&stem, &name]
             .iter()
             .flat_map(|b| [dir.join(format!("{b}.npy")), dir.join(format!("{b}.npz"))])
@@ -247,7 +261,10 @@ fn precomputed(dir: &Path, images: &[&Image], paths: &[PathBuf]) -> Result<Vec<F
             let m: &FeatureMap = m;
             let c0 = m.data.len() / (m.width * m.height);
             if c != c0 {
-                return Err(Error::bad_file(&file, format!("{c} channels, but the first map has {c0}")));
+                return Err(Error::bad_file(
+                    &file,
+                    format!("{c} channels, but the first map has {c0}"),
+                ));
             }
         }
         maps.push(FeatureMap {
@@ -277,7 +294,10 @@ mod npy {
                 .next()
                 .map(str::to_string)
                 .ok_or_else(|| Error::bad_file(path, "the archive holds no array"))?;
-            let npy = z.by_name(&name).map_err(bad)?.ok_or_else(|| Error::bad_file(path, "array vanished"))?;
+            let npy = z
+                .by_name(&name)
+                .map_err(bad)?
+                .ok_or_else(|| Error::bad_file(path, "array vanished"))?;
             values(npy, path)
         } else {
             values(npyz::NpyFile::new(&bytes[..]).map_err(bad)?, path)
@@ -286,13 +306,18 @@ mod npy {
 
     fn values<R: std::io::Read>(npy: npyz::NpyFile<R>, path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
         if npy.order() != npyz::Order::C {
-            return Err(Error::bad_file(path, "Fortran-ordered arrays are not supported; save with C order"));
+            return Err(Error::bad_file(
+                path,
+                "Fortran-ordered arrays are not supported; save with C order",
+            ));
         }
         let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
         let type_str = npy.dtype().descr();
         let data: Vec<f32> = match type_str.trim_matches('\'').trim_start_matches(['<', '>', '|', '=']) {
             "f4" => npy.into_vec::<f32>(),
-            "f2" => npy.into_vec::<half::f16>().map(|v| v.into_iter().map(f32::from).collect()),
+            "f2" => npy
+                .into_vec::<half::f16>()
+                .map(|v| v.into_iter().map(f32::from).collect()),
             "f8" => npy.into_vec::<f64>().map(|v| v.into_iter().map(|x| x as f32).collect()),
             other => return Err(Error::bad_file(path, format!("dtype {other} is not a float type"))),
         }
@@ -306,7 +331,11 @@ mod npy {
     /// `[h, w, C]` / `[C, h, w]` (optionally with a leading 1) to
     /// channels-last `(w, h, C, data)`.
     pub fn to_hwc(shape: &[usize], data: Vec<f32>) -> std::result::Result<(usize, usize, usize, Vec<f32>), String> {
-        let s: &[usize] = if shape.len() == 4 && shape[0] == 1 { &shape[1..] } else { shape };
+        let s: &[usize] = if shape.len() == 4 && shape[0] == 1 {
+            &shape[1..]
+        } else {
+            shape
+        };
         let &[a, b, c] = s else {
             return Err(format!("shape {shape:?} is not [h, w, C] or [C, h, w]"));
         };
@@ -348,7 +377,11 @@ mod cache {
         let mut sizes = vec![];
         for (i, m) in maps.maps.iter().enumerate() {
             names.push(format!("map.{i:05}"));
-            tensors.push((Dtype::F32, vec![m.height, m.width, c], bytemuck::cast_slice(&m.data).to_vec()));
+            tensors.push((
+                Dtype::F32,
+                vec![m.height, m.width, c],
+                bytemuck::cast_slice(&m.data).to_vec(),
+            ));
             sizes.push([m.image_width, m.image_height]);
         }
         let mut meta = HashMap::new();
@@ -356,7 +389,10 @@ mod cache {
         meta.insert("version".into(), VERSION.to_string());
         meta.insert("key".into(), key.into());
         meta.insert("channels".into(), c.to_string());
-        meta.insert("image_sizes".into(), serde_json::to_string(&sizes).expect("sizes serialise"));
+        meta.insert(
+            "image_sizes".into(),
+            serde_json::to_string(&sizes).expect("sizes serialise"),
+        );
         write_atomic(path, &serialize(&names, &tensors, meta)?)
     }
 
@@ -367,7 +403,10 @@ mod cache {
         if meta.get("key").map(String::as_str) != Some(key) {
             return Err(bad("cached for other images or another teacher"));
         }
-        let c: usize = meta.get("channels").and_then(|v| v.parse().ok()).ok_or_else(|| bad("no channel count"))?;
+        let c: usize = meta
+            .get("channels")
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| bad("no channel count"))?;
         let sizes: Vec<[u32; 2]> = meta
             .get("image_sizes")
             .and_then(|s| serde_json::from_str(s).ok())

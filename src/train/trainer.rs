@@ -127,7 +127,9 @@ impl TrainConfig {
         );
         ensure!(self.stages >= 1 && self.stages <= 16, "stages must be 1..16");
         ensure!(
-            self.axis_scale.iter().all(|s| s.is_finite() && (0.05..=4.0).contains(s)),
+            self.axis_scale
+                .iter()
+                .all(|s| s.is_finite() && (0.05..=4.0).contains(s)),
             "axis scales must be in [0.05, 4]"
         );
         ensure!(
@@ -313,7 +315,9 @@ impl Trainer {
                 continue;
             }
             let step = self.step_size();
-            let kept = self.model.prune(step, self.config.prune_alpha, self.config.prune_dilate);
+            let kept = self
+                .model
+                .prune(step, self.config.prune_alpha, self.config.prune_dilate);
             let mut bounds = self.model.geom.bounds;
             if k == 1 && self.config.shrink_bounds {
                 if let Some(b) = self.model.occupied_bounds(step, self.config.prune_alpha, 2) {
@@ -338,7 +342,9 @@ impl Trainer {
         if pe > 0 && self.iter > 0 && self.iter.is_multiple_of(pe) && self.iter < self.config.iters {
             let first = sched.get(1).map_or(usize::MAX, |s| s.0);
             if self.iter > first {
-                let kept = self.model.prune(self.step_size(), self.config.prune_alpha, self.config.prune_dilate);
+                let kept = self
+                    .model
+                    .prune(self.step_size(), self.config.prune_alpha, self.config.prune_dilate);
                 self.notes.push(format!(
                     "iteration {}: pruned to {kept} of {} voxels",
                     self.iter,

@@ -33,7 +33,10 @@ impl Vit {
     /// Loads and optimises `path` for one `size × size` RGB image, with
     /// `output` (a node or tensor name) as the result.
     pub fn load(path: &Path, output: &str, size: u32) -> Result<Vit> {
-        crate::ensure!((14..=1024).contains(&size), "teacher input size {size} is out of range 14..1024");
+        crate::ensure!(
+            (14..=1024).contains(&size),
+            "teacher input size {size} is out of range 14..1024"
+        );
         use_all_cores();
         let bad = |what: &str, e: TractError| Error::bad_file(path, format!("{what}: {e}"));
         let mut model = tract_onnx::onnx()
@@ -161,7 +164,10 @@ pub fn find_default() -> Option<PathBuf> {
         return Some(PathBuf::from(p));
     }
     let out = std::process::Command::new("python3")
-        .args(["-c", "import site, sys; print('\\n'.join(sys.path + site.getsitepackages()))"])
+        .args([
+            "-c",
+            "import site, sys; print('\\n'.join(sys.path + site.getsitepackages()))",
+        ])
         .output()
         .ok()?;
     String::from_utf8_lossy(&out.stdout)
@@ -185,7 +191,10 @@ mod tests {
         let (w, h, c, g) = token_grid(&[1, 2, 1, 3], vec![0.0, 1.0, 2.0, 10.0, 11.0, 12.0]).unwrap();
         assert_eq!((w, h, c), (3, 1, 2));
         assert_eq!(g, vec![0.0, 10.0, 1.0, 11.0, 2.0, 12.0]);
-        assert!(token_grid(&[1, 34, 3], vec![0.0; 102]).is_err(), "25 patches + 9 extra tokens");
+        assert!(
+            token_grid(&[1, 34, 3], vec![0.0; 102]).is_err(),
+            "25 patches + 9 extra tokens"
+        );
         assert!(token_grid(&[2, 5, 3], vec![0.0; 30]).is_err(), "batch of two");
     }
 
