@@ -164,9 +164,9 @@ pub fn stage_table(rows: &[StageRow]) -> Table {
     t
 }
 
-/// Totals over rows of one phase (or all with `None`).
-pub fn totals(rows: &[StageRow], phase: Option<&str>) -> (usize, u64, f64) {
+/// Iterations, rays and seconds over the rows of one phase.
+pub fn totals(rows: &[StageRow], phase: &str) -> (usize, u64, f64) {
     rows.iter()
-        .filter(|r| phase.is_none_or(|p| r.phase == p))
+        .filter(|r| r.phase == phase)
         .fold((0, 0, 0.0), |(i, n, s), r| (i + r.iters, n + r.rays, s + r.seconds))
 }

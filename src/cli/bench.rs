@@ -224,11 +224,11 @@ fn run_train(a: TrainArgs) -> Result<()> {
     if let Some(l) = isrf::bench::load_average() {
         println!("load average {l:.2}: wall times include waiting for other processes");
     }
-    let (fi, fr, fs) = totals(&rows, Some("features"));
+    let (fi, fr, fs) = totals(&rows, "features");
     if fi > 0 {
         println!("distillation: {:.0} rays/s, {:.2} it/s", fr as f64 / fs, fi as f64 / fs);
     }
-    let (i, r, s) = totals(&rows, Some("radiance"));
+    let (i, r, s) = totals(&rows, "radiance");
     println!("it/s: {:.2}", i as f64 / s.max(1e-9));
     println!("rays/s: {:.0}", r as f64 / s.max(1e-9));
     Ok(())

@@ -65,6 +65,18 @@ impl FeatureMaps {
     }
 }
 
+/// Planar `[C, n]` values (channel-major) to `[n, C]` (channels last).
+pub fn channels_last(planar: &[f32], channels: usize) -> Vec<f32> {
+    let n = planar.len() / channels;
+    let mut out = vec![0.0; planar.len()];
+    for (k, plane) in planar.chunks_exact(n).enumerate() {
+        for (i, &v) in plane.iter().enumerate() {
+            out[i * channels + k] = v;
+        }
+    }
+    out
+}
+
 /// Where teacher features come from.
 #[derive(Clone, Debug, PartialEq)]
 pub enum TeacherSource {
@@ -240,7 +252,7 @@ fn fnv(bytes: &[u8]) -> u64 {
 
 /// Reads the precomputed map of every image from `dir`.
 fn precomputed(dir: &Path, images: &[&Image], paths: &[PathBuf]) -> Result<Vec<FeatureMap>> {
-    let mut maps = Vec::with_capacity(images.len());
+    let mut maps: Vec<FeatureMap> = Vec::with_capacity(images.len());
     for (img, p) in images.iter().zip(paths) {
         let name = p
             .file_name()
@@ -257,9 +269,8 @@ fn precomputed(dir: &Path, images: &[&Image], paths: &[PathBuf]) -> Result<Vec<F
             .ok_or_else(|| Error::bad_file(dir, format!("no {stem}.npy or {stem}.npz for image {}", p.display())))?;
         let (shape, data) = npy::read(&file)?;
         let (w, h, c, data) = npy::to_hwc(&shape, data).map_err(|r| Error::bad_file(&file, r))?;
-        if let Some(m) = maps.first() {
-            let m: &FeatureMap = m;
-            let c0 = m.data.len() / (m.width * m.height);
+        if let Some(first) = maps.first() {
+            let c0 = first.data.len() / (first.width * first.height);
             if c != c0 {
                 return Err(Error::bad_file(
                     &file,
@@ -345,14 +356,7 @@ mod npy {
         if c >= a {
             return Ok((b, a, c, data));
         }
-        // [C, h, w] → channels last.
-        let mut out = vec![0.0; a * b * c];
-        for k in 0..a {
-            for i in 0..b * c {
-                out[i * a + k] = data[k * b * c + i];
-            }
-        }
-        Ok((c, b, a, out))
+        Ok((c, b, a, super::channels_last(&data, a)))
     }
 }
 

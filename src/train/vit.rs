@@ -84,18 +84,6 @@ impl Vit {
             data,
         })
     }
-
-    /// Channels of the model's output (runs it once on a grey image).
-    pub fn channels(&self) -> Result<usize> {
-        let grey = Image {
-            width: self.size,
-            height: self.size,
-            rgb: vec![0.5; 3 * (self.size * self.size) as usize],
-            alpha: None,
-        };
-        let m = self.run(&grey)?;
-        Ok(m.data.len() / (m.width * m.height))
-    }
 }
 
 /// tract's matrix products run on one thread unless told otherwise.
@@ -144,15 +132,7 @@ pub fn token_grid(shape: &[usize], data: Vec<f32>) -> std::result::Result<(usize
             }
             Ok((side, side, c, data[extra * c..].to_vec()))
         }
-        [1, c, h, w] => {
-            let mut out = vec![0.0; c * h * w];
-            for k in 0..c {
-                for i in 0..h * w {
-                    out[i * c + k] = data[k * h * w + i];
-                }
-            }
-            Ok((w, h, c, out))
-        }
+        [1, c, h, w] => Ok((w, h, c, super::teacher::channels_last(&data, c))),
         _ => Err(format!("shape {shape:?} is neither [1, tokens, C] nor [1, C, h, w]")),
     }
 }
