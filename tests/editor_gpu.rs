@@ -223,3 +223,86 @@ fn a_removed_object_leaves_no_shell_on_the_gpu() {
     eprintln!("mug alone at {W}x{H}: PSNR {p:.2} dB");
     assert!(p >= MIN_PSNR, "keep PSNR {p:.2} dB < {MIN_PSNR}");
 }
+
+/// `isrf run --gpu`: the same script's render frames drawn by the GPU ray
+/// marcher (through `run_script_with`) match the CPU run's frames; the
+/// mask export in the same script still comes from the CPU.
+#[test]
+fn scripts_render_on_the_gpu_like_on_the_cpu() {
+    use isrf::app::headless::GpuFrames;
+    use isrf::command::{run_script_with, CameraSource, Command, FieldSource, Script, StrokeSource, TransformSpec};
+    if skip() {
+        return;
+    }
+    let load = Command::LoadField {
+        name: "room".into(),
+        source: FieldSource::Demo {
+            scene: "tabletop".into(),
+            res: 48,
+            seed: 3,
+        },
+        transform: None,
+    };
+    let render_cmd = |width, height| Command::Render {
+        cameras: CameraSource::Orbit {
+            center: [0.0, -0.2, 0.0],
+            radius: 2.0,
+            elevation_deg: 25.0,
+            frames: 2,
+            width,
+            height,
+            fov_deg: 50.0,
+        },
+        out: format!("frames_{width}").into(),
+        downscale: 1,
+        frames: None,
+        depth: false,
+        background: None,
+    };
+    let script = Script {
+        commands: vec![
+            load,
+            Command::Stroke {
+                object: "mug".into(),
+                field: None,
+                polarity: None,
+                source: StrokeSource::Demo { object: "mug".into() },
+            },
+            Command::Transform {
+                object: "mug".into(),
+                transform: TransformSpec::translation(Vec3::new(0.25, 0.0, 0.1)),
+            },
+            // Two frame sizes: the GPU renderer is rebuilt for the second.
+            render_cmd(96, 72),
+            render_cmd(64, 48),
+        ],
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (cpu_out, gpu_out) = (dir.path().join("cpu"), dir.path().join("gpu"));
+    run_script_with(&script, dir.path(), &cpu_out, None, |_, _, _| {}).unwrap();
+    let mut gpu = GpuFrames::default();
+    run_script_with(&script, dir.path(), &gpu_out, Some(&mut gpu), |_, _, _| {}).unwrap();
+    let mut compared = 0;
+    for sub in ["frames_96", "frames_64"] {
+        for e in std::fs::read_dir(cpu_out.join(sub)).unwrap() {
+            let p = e.unwrap().path();
+            let a = isrf::data::Image::load(&p).unwrap();
+            let b = isrf::data::Image::load(&gpu_out.join(sub).join(p.file_name().unwrap())).unwrap();
+            assert_eq!((a.width, a.height), (b.width, b.height));
+            let px = |im: &isrf::data::Image| -> Vec<Vec3> {
+                (0..im.height)
+                    .flat_map(|y| (0..im.width).map(move |x| (x, y)))
+                    .map(|(x, y)| Vec3::from(im.pixel(x, y)))
+                    .collect()
+            };
+            let q = psnr(&px(&a), &px(&b));
+            assert!(
+                q >= MIN_PSNR,
+                "{}: GPU frame is {q:.1} dB from the CPU one",
+                p.display()
+            );
+            compared += 1;
+        }
+    }
+    assert_eq!(compared, 4);
+}

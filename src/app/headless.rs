@@ -246,3 +246,22 @@ pub fn gpu_available() -> bool {
     });
     !bevy::tasks::block_on(instance.enumerate_adapters(backends)).is_empty()
 }
+
+/// `Render` frames of edit scripts drawn by the GPU ray marcher (`isrf run
+/// --gpu`); one window-less renderer, recreated when the frame size changes.
+#[derive(Default)]
+pub struct GpuFrames {
+    renderer: Option<HeadlessRenderer>,
+}
+
+impl crate::command::FrameRenderer for GpuFrames {
+    fn render_rgb(&mut self, scene: Arc<Scene>, camera: &Camera) -> Result<Vec<glam::Vec3>> {
+        let k = camera.intrinsics;
+        if self.renderer.as_ref().map(|r| r.size()) != Some((k.width, k.height)) {
+            self.renderer = None;
+            self.renderer = Some(HeadlessRenderer::new(k.width, k.height)?);
+        }
+        let r = self.renderer.as_mut().expect("created above");
+        r.render(scene, camera)
+    }
+}

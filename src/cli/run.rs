@@ -3,7 +3,8 @@
 
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
-use isrf::command::script::{load_script, run_script, validate_script};
+use isrf::command::script::{load_script, run_script_with, validate_script};
+use isrf::command::FrameRenderer;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -16,6 +17,11 @@ pub struct Args {
     /// Only validate the script.
     #[arg(long)]
     pub check: bool,
+    /// Draw `render` frames with the GPU ray marcher (window-less; needs the
+    /// `editor` feature and a Vulkan adapter, lavapipe included). Depth
+    /// images and masks still come from the CPU renderer.
+    #[arg(long)]
+    pub gpu: bool,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -33,10 +39,17 @@ pub fn run(a: Args) -> Result<()> {
     }
     let bar = ProgressBar::new(script.commands.len() as u64);
     bar.set_style(ProgressStyle::with_template("{bar:40} step {pos}/{len} {elapsed} {msg}").unwrap());
-    let written = run_script(&script, &base, &a.out, |i, _, msg| {
-        bar.set_position(i as u64);
-        bar.set_message(msg.to_string());
-    })
+    let mut gpu = gpu_frames(a.gpu)?;
+    let written = run_script_with(
+        &script,
+        &base,
+        &a.out,
+        gpu.as_mut().map(|g| &mut **g as _),
+        |i, _, msg| {
+            bar.set_position(i as u64);
+            bar.set_message(msg.to_string());
+        },
+    )
     .map_err(|e| anyhow::anyhow!("{}: {e}", a.script.display()))?;
     bar.finish_and_clear();
     println!(
@@ -47,4 +60,26 @@ pub fn run(a: Args) -> Result<()> {
         a.out.display()
     );
     Ok(())
+}
+
+#[cfg(feature = "editor")]
+fn gpu_frames(on: bool) -> Result<Option<Box<dyn FrameRenderer>>> {
+    use isrf::app::headless::{gpu_available, GpuFrames};
+    if !on {
+        return Ok(None);
+    }
+    anyhow::ensure!(
+        gpu_available(),
+        "--gpu: no GPU adapter (on a machine without a GPU install mesa-vulkan-drivers for lavapipe)"
+    );
+    Ok(Some(Box::new(GpuFrames::default())))
+}
+
+#[cfg(not(feature = "editor"))]
+fn gpu_frames(on: bool) -> Result<Option<Box<dyn FrameRenderer>>> {
+    anyhow::ensure!(
+        !on,
+        "--gpu needs the GPU ray marcher: rebuild with `cargo build --features editor`"
+    );
+    Ok(None)
 }

@@ -12,8 +12,8 @@ pub mod composition;
 pub mod script;
 pub mod session;
 
-pub use script::{parse_script, run_script, validate_script, Script};
-pub use session::{Session, StepOutput};
+pub use script::{parse_script, run_script, run_script_with, validate_script, Script};
+pub use session::{FrameRenderer, Session, StepOutput};
 
 use crate::camera::CameraSet;
 use crate::render::ColorEdit;

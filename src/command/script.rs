@@ -360,6 +360,18 @@ pub fn run_script(
     script: &Script,
     base: &Path,
     out: &Path,
+    progress: impl FnMut(usize, usize, &str),
+) -> Result<Vec<PathBuf>> {
+    run_script_with(script, base, out, None, progress)
+}
+
+/// [`run_script`] with `Render` frames drawn by `frames` (see
+/// [`super::session::FrameRenderer`]).
+pub fn run_script_with(
+    script: &Script,
+    base: &Path,
+    out: &Path,
+    mut frames: Option<&mut dyn super::session::FrameRenderer>,
     mut progress: impl FnMut(usize, usize, &str),
 ) -> Result<Vec<PathBuf>> {
     validate_script(script, base)?;
@@ -372,7 +384,7 @@ pub fn run_script(
     let n = script.commands.len();
     for (i, c) in script.commands.iter().enumerate() {
         let r = session
-            .apply(c)
+            .apply_with(c, reborrow(&mut frames))
             .map_err(|e| Error::invalid(format!("step {} ({}): {e}", i + 1, c.kind())))?;
         progress(i + 1, n, &r.message);
     }
@@ -388,6 +400,17 @@ pub fn run_script(
         written.push(dest);
     }
     Ok(written)
+}
+
+/// A shorter-lived `&mut dyn` from the loop's renderer (`as_deref_mut`
+/// would tie it to the trait object's own lifetime).
+fn reborrow<'a>(
+    r: &'a mut Option<&mut dyn super::session::FrameRenderer>,
+) -> Option<&'a mut dyn super::session::FrameRenderer> {
+    match r {
+        Some(f) => Some(&mut **f),
+        None => None,
+    }
 }
 
 /// Files under `dir`, sorted.

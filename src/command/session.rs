@@ -59,6 +59,13 @@ pub struct State {
     pub background: [f32; 3],
 }
 
+/// Draws colour frames for `Render` commands in place of the CPU reference
+/// renderer (the editor's GPU ray marcher implements it for `isrf run --gpu`).
+pub trait FrameRenderer {
+    /// Colours in [0, 1], row-major, `camera`'s size.
+    fn render_rgb(&mut self, scene: Arc<Scene>, camera: &Camera) -> Result<Vec<Vec3>>;
+}
+
 /// What one command produced.
 #[derive(Clone, Debug, Default)]
 pub struct StepOutput {
@@ -125,8 +132,14 @@ impl Session {
     /// Validates and performs a command. Edits go on the undo stack; render
     /// and export commands only write files. On error nothing changes.
     pub fn apply(&mut self, cmd: &Command) -> Result<StepOutput> {
+        self.apply_with(cmd, None)
+    }
+
+    /// [`Session::apply`], with colour frames of `Render` commands drawn by
+    /// `renderer` (e.g. the GPU ray marcher) instead of the CPU renderer.
+    pub fn apply_with(&mut self, cmd: &Command, renderer: Option<&mut dyn FrameRenderer>) -> Result<StepOutput> {
         if !cmd.is_edit() {
-            return self.output(cmd);
+            return self.output(cmd, renderer);
         }
         let mut next = self.state.clone();
         let out = self.edit(&mut next, cmd)?;
@@ -450,7 +463,7 @@ impl Session {
         }
     }
 
-    fn output(&self, cmd: &Command) -> Result<StepOutput> {
+    fn output(&self, cmd: &Command, mut renderer: Option<&mut dyn FrameRenderer>) -> Result<StepOutput> {
         let mut out = StepOutput::default();
         match cmd {
             Command::Render {
@@ -475,9 +488,20 @@ impl Session {
                     depth: *depth,
                     ..Default::default()
                 };
+                // Depth needs the CPU renderer's per-pixel outputs.
+                let mut gpu = if *depth { None } else { renderer.as_deref_mut() };
+                let shared = gpu.is_some().then(|| Arc::new(scene.clone()));
                 for fr in &cams.frames {
-                    let frame = render(&scene, &fr.camera.downscaled(*downscale), &opts)?;
+                    let cam = fr.camera.downscaled(*downscale);
                     let p = dir.join(format!("{}.png", fr.base_name()));
+                    if let (Some(g), Some(sc)) = (gpu.as_deref_mut(), &shared) {
+                        let rgb = g.render_rgb(sc.clone(), &cam)?;
+                        let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
+                        save_png(&p, w, h, &to_rgb8(&rgb))?;
+                        out.files.push(p);
+                        continue;
+                    }
+                    let frame = render(&scene, &cam, &opts)?;
                     save_png(&p, frame.width, frame.height, &to_rgb8(&frame.out.color))?;
                     out.files.push(p);
                     if *depth {

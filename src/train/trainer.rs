@@ -399,6 +399,10 @@ impl Trainer {
                 for &ri in idx {
                     let ri = ri as usize;
                     let ray = &rays.rays[ri];
+                    let opts = MarchOpts {
+                        step: ray_step(&model.geom, ray.dir),
+                        ..opts
+                    };
                     let out = forward(model, ray, &opts, &mut s);
                     ns += out.samples as u64;
                     let d = out.color - rays.colors[ri];
@@ -599,10 +603,46 @@ pub fn step_of(geom: &GridGeom) -> f32 {
     0.5 * geom.spacing().min_element()
 }
 
+/// Training sample spacing along a unit direction: half a voxel measured in
+/// grid units along the ray. On cubic voxels this is [`step_of`]; on the
+/// anisotropic NDC grids of forward-facing scenes (depth voxels 2–3× longer)
+/// rays run mostly along depth, and the smallest side would sample them 2–3×
+/// finer than the grid can resolve, at 2–3× the cost.
+pub fn ray_step(geom: &GridGeom, dir: Vec3) -> f32 {
+    let in_voxels = (dir / geom.spacing()).length();
+    if in_voxels.is_finite() && in_voxels > 0.0 {
+        0.5 / in_voxels
+    } else {
+        step_of(geom)
+    }
+}
+
 pub fn psnr_of(mse: f32) -> f32 {
     if mse <= 0.0 {
         f32::INFINITY
     } else {
         -10.0 * mse.log10()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ray_step_is_half_a_voxel_in_grid_units() {
+        let cube = GridGeom::new(Aabb::new(Vec3::ZERO, Vec3::ONE), [65, 65, 65]);
+        for d in [Vec3::X, Vec3::new(1.0, 2.0, -3.0).normalize(), Vec3::NEG_Z] {
+            assert!((ray_step(&cube, d) - step_of(&cube)).abs() < 1e-7);
+        }
+        // Depth voxels 4× longer: a ray along depth takes 4× longer steps,
+        // one along x keeps the fine step.
+        let flat = GridGeom::new(Aabb::new(Vec3::ZERO, Vec3::ONE), [65, 65, 17]);
+        let s = flat.spacing();
+        assert!((ray_step(&flat, Vec3::Z) - 0.5 * s.z).abs() < 1e-7);
+        assert!((ray_step(&flat, Vec3::X) - 0.5 * s.x).abs() < 1e-7);
+        let diag = Vec3::new(0.0, 1.0, 1.0).normalize();
+        let expect = 0.5 / ((diag.y / s.y).powi(2) + (diag.z / s.z).powi(2)).sqrt();
+        assert!((ray_step(&flat, diag) - expect).abs() < 1e-7);
     }
 }
