@@ -59,12 +59,14 @@ pub fn snap_to(
 /// maps its buttons to the tool (brush: left paints, middle orbits).
 pub fn gate_orbit(
     state: Res<EditorState>,
+    gizmo: Res<super::state::GizmoView>,
     wants: Option<Res<EguiWantsInput>>,
     mut cams: Query<&mut PanOrbitCamera, With<EditorCamera>>,
 ) {
     let egui_busy = wants.is_some_and(|w| w.wants_any_pointer_input());
     for mut pan in &mut cams {
-        let enabled = !egui_busy && !state.fly && state.transform.is_none();
+        // Over a gizmo arrow a press drags the object, not the view.
+        let enabled = !egui_busy && !state.fly && state.transform.is_none() && gizmo.hovered.is_none();
         if pan.enabled != enabled {
             pan.enabled = enabled;
         }

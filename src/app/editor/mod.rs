@@ -111,6 +111,7 @@ pub struct EditorCorePlugin;
 impl Plugin for EditorCorePlugin {
     fn build(&self, app: &mut App) {
         app.init_resource::<EditorState>()
+            .init_resource::<state::GizmoView>()
             .init_resource::<CurrentStroke>()
             .init_resource::<SceneSync>()
             .init_resource::<MarchScene>()
@@ -156,6 +157,7 @@ impl Plugin for EditorPlugin {
             .add_systems(
                 Update,
                 (
+                    tools::gizmo,
                     camera::gate_orbit,
                     camera::fly,
                     tools::brush,

@@ -32,6 +32,26 @@ pub struct TransformDrag {
     pub start: Transform,
     /// Cursor position (logical) when the drag began.
     pub cursor0: Vec2,
+    /// Moves only along this world axis (a gizmo arrow, or X / Y / Z
+    /// typed during G).
+    pub axis: Option<Vec3>,
+    /// Started by pressing a gizmo arrow: releasing the button confirms.
+    pub gizmo: bool,
+}
+
+/// The move gizmo of the selected object in window coordinates (logical
+/// pixels), recomputed every frame; drawn by the UI, picked by
+/// [`super::tools::transform_modes`].
+#[derive(Resource, Default, Clone, Copy, Debug)]
+pub struct GizmoView {
+    pub center: Option<Vec2>,
+    /// Arrow tips of the world X, Y, Z axes (`None`: the axis points at the
+    /// camera and cannot be dragged).
+    pub tips: [Option<Vec2>; 3],
+    /// The arrow under the cursor.
+    pub hovered: Option<usize>,
+    /// The arrow being dragged.
+    pub active: Option<usize>,
 }
 
 #[derive(Resource)]

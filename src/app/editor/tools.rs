@@ -1,10 +1,11 @@
-//! Pointer tools: the brush (a drag becomes a [`StrokeMsg`]) and the
-//! keyboard transform modes G / R / S on the selected object (drag, then
-//! click or Enter to confirm, Esc or right click to cancel).
+//! Pointer tools: the brush (a drag becomes a [`StrokeMsg`]), the move
+//! gizmo (drag an axis arrow of the selected object, release to confirm) and
+//! the keyboard transform modes G / R / S (X / Y / Z lock G to an axis; move
+//! the mouse, click or Enter confirms, Esc or right click cancels).
 
 use super::camera::EditorCamera;
 use super::session::EditorSession;
-use super::state::{CurrentStroke, EditorState, StrokeMsg, Tool, TransformDrag, TransformMode};
+use super::state::{CurrentStroke, EditorState, GizmoView, StrokeMsg, Tool, TransformDrag, TransformMode};
 use crate::app::convert::camera_from_bevy;
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
 use crate::command::{Command, TransformSpec};
@@ -39,9 +40,12 @@ pub fn brush(
     wants: Option<Res<EguiWantsInput>>,
     windows: Query<&Window, With<PrimaryWindow>>,
     cams: Query<(&Camera, &GlobalTransform, &Projection), With<EditorCamera>>,
+    gizmo: Res<GizmoView>,
     mut out: MessageWriter<StrokeMsg>,
 ) {
-    if state.tool != Tool::Brush || state.fly || state.transform.is_some() {
+    // A press on a gizmo arrow moves the object instead of painting.
+    let on_gizmo = stroke.pixels.is_empty() && gizmo.hovered.is_some();
+    if state.tool != Tool::Brush || state.fly || state.transform.is_some() || on_gizmo {
         stroke.screen.clear();
         stroke.pixels.clear();
         return;
@@ -109,6 +113,100 @@ pub fn transform_command(object: &str, from: &Transform, to: &Transform) -> Comm
     }
 }
 
+/// Length of the gizmo arrows on screen (logical pixels).
+pub const GIZMO_ARROW: f32 = 80.0;
+/// How close (logical pixels) the cursor must be to pick an arrow.
+const GIZMO_PICK: f32 = 8.0;
+
+/// Screen arrows of the world axes at `center`: each `GIZMO_ARROW` long,
+/// `None` where the axis is nearly along the view ray (its screen direction
+/// would be meaningless) or the centre is behind the camera.
+pub fn gizmo_arrows(
+    to_screen: impl Fn(Vec3) -> Option<Vec2>,
+    center: Vec3,
+    scale: f32,
+) -> Option<(Vec2, [Option<Vec2>; 3])> {
+    let c = to_screen(center)?;
+    let tips = [Vec3::X, Vec3::Y, Vec3::Z].map(|a| {
+        let d = to_screen(center + a * scale)? - c;
+        // Shorter than a fifth of the arrow per `scale`: pointing at us.
+        (d.length() > 0.2 * GIZMO_ARROW).then(|| c + d.normalize() * GIZMO_ARROW)
+    });
+    Some((c, tips))
+}
+
+/// The arrow whose segment passes within `GIZMO_PICK` of `cursor` (the
+/// nearest one).
+pub fn pick_arrow(center: Vec2, tips: &[Option<Vec2>; 3], cursor: Vec2) -> Option<usize> {
+    tips.iter()
+        .enumerate()
+        .filter_map(|(i, tip)| {
+            let tip = (*tip)?;
+            let seg = tip - center;
+            let t = ((cursor - center).dot(seg) / seg.length_squared()).clamp(0.0, 1.0);
+            let d = (center + t * seg).distance(cursor);
+            // Skip the first fifth: the centre belongs to no single arrow.
+            (d <= GIZMO_PICK && t > 0.2).then_some((i, d))
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(i, _)| i)
+}
+
+/// Parameter s of the point on the line `center + s·axis` closest to the
+/// ray `(origin, dir)`; `None` when they are (nearly) parallel.
+pub fn closest_on_axis(center: Vec3, axis: Vec3, origin: Vec3, dir: Vec3) -> Option<f32> {
+    let w = center - origin;
+    let (a, b, c) = (axis.dot(axis), axis.dot(dir), dir.dot(dir));
+    let (d, e) = (axis.dot(w), dir.dot(w));
+    let den = a * c - b * b;
+    (den.abs() > 1e-6 * a * c).then(|| (b * e - c * d) / den)
+}
+
+/// Places the move gizmo on the selected object (or clears it).
+#[allow(clippy::too_many_arguments)]
+pub fn gizmo(
+    state: Res<EditorState>,
+    mut view: ResMut<GizmoView>,
+    windows: Query<&Window, With<PrimaryWindow>>,
+    cams: Query<(&Camera, &GlobalTransform), With<EditorCamera>>,
+    selected: Query<Entity, (With<Selected>, With<ObjectLayer>)>,
+    objects: Query<(&ObjectLayer, &Transform), Without<FieldLayer>>,
+    fields: Query<(&FieldLayer, &Transform), Without<ObjectLayer>>,
+) {
+    let active = state.transform.filter(|d| d.gizmo).and_then(|d| d.axis).map(axis_index);
+    *view = GizmoView {
+        active,
+        ..Default::default()
+    };
+    let busy = state.fly || state.transform.is_some_and(|d| !d.gizmo);
+    let (Ok(entity), Ok((cam, cam_t)), false) = (selected.single(), cams.single(), busy) else {
+        return;
+    };
+    let Ok((obj, t)) = objects.get(entity) else { return };
+    let Ok((field, field_t)) = fields.get(obj.field) else {
+        return;
+    };
+    if obj.removed || obj.hidden {
+        return;
+    }
+    let center = object_center(obj, t, field, field_t);
+    // World length of the arrows: their screen size at the object's depth.
+    let scale = 0.25 * (center - cam_t.translation()).length().max(1e-3);
+    let Some((c, tips)) = gizmo_arrows(|p| cam.world_to_viewport(cam_t, p).ok(), center, scale) else {
+        return;
+    };
+    let origin = cam.logical_viewport_rect().map_or(Vec2::ZERO, |r| r.min);
+    view.center = Some(c + origin);
+    view.tips = tips.map(|t| t.map(|t| t + origin));
+    if let Some(cursor) = windows.single().ok().and_then(|w| w.cursor_position()) {
+        view.hovered = pick_arrow(c + origin, &view.tips, cursor);
+    }
+}
+
+fn axis_index(a: Vec3) -> usize {
+    a.abs().max_position()
+}
+
 #[allow(clippy::too_many_arguments)]
 pub fn transform_modes(
     mut state: ResMut<EditorState>,
@@ -116,6 +214,7 @@ pub fn transform_modes(
     keys: Res<ButtonInput<KeyCode>>,
     buttons: Res<ButtonInput<MouseButton>>,
     wants: Option<Res<EguiWantsInput>>,
+    gizmo: Res<GizmoView>,
     windows: Query<&Window, With<PrimaryWindow>>,
     cams: Query<(&Camera, &GlobalTransform), With<EditorCamera>>,
     selected: Query<Entity, (With<Selected>, With<ObjectLayer>)>,
@@ -126,6 +225,23 @@ pub fn transform_modes(
     let Ok(window) = windows.single() else { return };
     let Some(cursor) = window.cursor_position() else { return };
     if state.transform.is_none() {
+        let egui_pointer = wants.as_ref().is_some_and(|w| w.wants_pointer_input());
+        if let (Some(i), true, false) = (gizmo.hovered, buttons.just_pressed(MouseButton::Left), egui_pointer) {
+            if let Ok(entity) = selected.single() {
+                if let Ok((_, _, t)) = objects.get(entity) {
+                    state.transform = Some(TransformDrag {
+                        mode: TransformMode::Move,
+                        entity,
+                        start: *t,
+                        cursor0: cursor,
+                        axis: Some([Vec3::X, Vec3::Y, Vec3::Z][i]),
+                        gizmo: true,
+                    });
+                    state.status = format!("moving along {}: release to place, Esc cancels", ["X", "Y", "Z"][i]);
+                }
+            }
+            return;
+        }
         if typing || state.fly || keys.any_pressed([KeyCode::ControlLeft, KeyCode::ControlRight]) {
             return;
         }
@@ -148,11 +264,26 @@ pub fn transform_modes(
             entity,
             start: *t,
             cursor0: cursor,
+            axis: None,
+            gizmo: false,
         });
         state.status = format!("{mode:?}: move the mouse, click or Enter confirms, Esc cancels");
         return;
     }
-    let drag = state.transform.unwrap();
+    let Some(mut drag) = state.transform else { return };
+    // X / Y / Z lock a keyboard move to a world axis (again: unlock).
+    if drag.mode == TransformMode::Move && !drag.gizmo {
+        for (k, a) in [
+            (KeyCode::KeyX, Vec3::X),
+            (KeyCode::KeyY, Vec3::Y),
+            (KeyCode::KeyZ, Vec3::Z),
+        ] {
+            if keys.just_pressed(k) {
+                drag.axis = if drag.axis == Some(a) { None } else { Some(a) };
+                state.transform = Some(drag);
+            }
+        }
+    }
     let Ok((name, obj, mut t)) = objects.get_mut(drag.entity) else {
         state.transform = None;
         return;
@@ -167,7 +298,12 @@ pub fn transform_modes(
         state.status = "transform cancelled".into();
         return;
     }
-    if keys.just_pressed(KeyCode::Enter) || buttons.just_pressed(MouseButton::Left) {
+    let confirm = if drag.gizmo {
+        !buttons.pressed(MouseButton::Left)
+    } else {
+        keys.just_pressed(KeyCode::Enter) || buttons.just_pressed(MouseButton::Left)
+    };
+    if confirm {
         state.transform = None;
         if *t != drag.start {
             es.apply(transform_command(&name.0, &drag.start, &t));
@@ -180,13 +316,22 @@ pub fn transform_modes(
     let fwd = cam_t.forward().as_vec3();
     let w = match drag.mode {
         TransformMode::Move => {
-            // Cursor delta at the object's depth, in the view plane.
+            let origin = cam.logical_viewport_rect().map_or(Vec2::ZERO, |r| r.min);
             let (Ok(a), Ok(b)) = (
-                cam.viewport_to_world(cam_t, drag.cursor0),
-                cam.viewport_to_world(cam_t, cursor),
+                cam.viewport_to_world(cam_t, drag.cursor0 - origin),
+                cam.viewport_to_world(cam_t, cursor - origin),
             ) else {
                 return;
             };
+            if let Some(axis) = drag.axis {
+                // Along the axis: between the points of the axis line
+                // nearest to the two cursor rays.
+                let s = |r: Ray3d| closest_on_axis(center, axis, r.origin, r.direction.as_vec3());
+                let (Some(sa), Some(sb)) = (s(a), s(b)) else { return };
+                *t = Transform::from_matrix(Mat4::from_translation(axis * (sb - sa)) * drag.start.to_matrix());
+                return;
+            }
+            // Free: the cursor delta at the object's depth, in the view plane.
             let depth = (center - cam_t.translation()).dot(fwd);
             let pa = a.origin + a.direction * (depth / a.direction.dot(fwd));
             let pb = b.origin + b.direction * (depth / b.direction.dot(fwd));
@@ -254,5 +399,41 @@ mod tests {
         s.apply(&transform_command("o", &from, &to)).unwrap();
         let got = crate::app::convert::to_bevy_mat4(&s.object("o").unwrap().transform);
         assert!(got.abs_diff_eq(to.to_matrix(), 1e-5), "{got:?} vs {:?}", to.to_matrix());
+    }
+
+    #[test]
+    fn closest_point_on_the_axis_to_a_ray() {
+        // Axis x through (0, 0, -5); a ray from the origin towards (2, 1, -5)
+        // passes over x = 2 on that line.
+        let c = Vec3::new(0.0, 0.0, -5.0);
+        let s = closest_on_axis(c, Vec3::X, Vec3::ZERO, Vec3::new(2.0, 0.0, -5.0).normalize()).unwrap();
+        assert!((s - 2.0).abs() < 1e-5, "{s}");
+        // Skew lines: the ray (2t, t, −5t) is nearest the axis where
+        // t² + 25(1 − t)² is least, t = 25/26, so x = 2t = 50/26.
+        let s = closest_on_axis(c, Vec3::X, Vec3::ZERO, Vec3::new(2.0, 1.0, -5.0).normalize()).unwrap();
+        assert!((s - 50.0 / 26.0).abs() < 1e-5, "{s}");
+        // A ray along the axis has no single nearest point.
+        assert!(closest_on_axis(c, Vec3::Z, Vec3::ZERO, Vec3::NEG_Z).is_none());
+    }
+
+    #[test]
+    fn arrows_are_picked_along_their_shaft_only() {
+        // A pinhole looking down -z: the z arrow points at the camera.
+        let project = |p: Vec3| (p.z < 0.0).then(|| Vec2::new(400.0 + 500.0 * p.x / -p.z, 300.0 - 500.0 * p.y / -p.z));
+        let (c, tips) = gizmo_arrows(project, Vec3::new(0.0, 0.0, -4.0), 1.0).unwrap();
+        assert_eq!(c, Vec2::new(400.0, 300.0));
+        let x = tips[0].unwrap();
+        let y = tips[1].unwrap();
+        assert!((x - Vec2::new(400.0 + GIZMO_ARROW, 300.0)).length() < 1e-3);
+        assert!((y - Vec2::new(400.0, 300.0 - GIZMO_ARROW)).length() < 1e-3);
+        assert!(tips[2].is_none(), "the z arrow points at the camera");
+        assert_eq!(pick_arrow(c, &tips, Vec2::new(450.0, 305.0)), Some(0));
+        assert_eq!(pick_arrow(c, &tips, Vec2::new(398.0, 250.0)), Some(1));
+        // Off the shafts, past the tips, and at the shared centre: nothing.
+        assert_eq!(pick_arrow(c, &tips, Vec2::new(450.0, 330.0)), None);
+        assert_eq!(pick_arrow(c, &tips, Vec2::new(400.0 + GIZMO_ARROW + 20.0, 300.0)), None);
+        assert_eq!(pick_arrow(c, &tips, Vec2::new(402.0, 298.0)), None);
+        // Behind the camera: no gizmo.
+        assert!(gizmo_arrows(project, Vec3::new(0.0, 0.0, 4.0), 1.0).is_none());
     }
 }

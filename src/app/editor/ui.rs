@@ -9,7 +9,7 @@
 
 use super::camera::{snap_to, EditorCamera};
 use super::session::{EditorSession, Request};
-use super::state::{CurrentStroke, EditorState, Tool};
+use super::state::{CurrentStroke, EditorState, GizmoView, Tool};
 use super::tools::transform_command;
 use crate::app::convert::{bevy_transform, to_bevy_vec3};
 use crate::app::gpu::SharedStatus;
@@ -71,6 +71,7 @@ pub fn panels(
     mut state: ResMut<EditorState>,
     mut es: ResMut<EditorSession>,
     stroke: Res<CurrentStroke>,
+    gizmo: Res<GizmoView>,
     status: Res<SharedStatus>,
     diagnostics: Option<Res<DiagnosticsStore>>,
     fields: Query<(Entity, &SessionName, &FieldLayer), Without<ObjectLayer>>,
@@ -110,7 +111,8 @@ pub fn panels(
                     selection_panel(ui, &mut state, &mut es, e, &mut objects);
                 } else if let Ok((_, name, f)) = fields.get(e) {
                     ui.separator();
-                    ui.heading(format!("Field {}", name.0));
+                    ui.heading("Field");
+                    name_editor(ui, &mut state, &mut es, e, &name.0);
                     ui.label(format!(
                         "{:?} grid, {:.1} MB",
                         f.field.res(),
@@ -124,6 +126,7 @@ pub fn panels(
     // The 3D view gets what the panels leave.
     let free = root.available_rect_before_wrap();
     draw_stroke(&ctx, &stroke, &state);
+    draw_gizmo(&ctx, &gizmo);
 
     if let Some(s) = select {
         for old in &selected {
@@ -480,6 +483,25 @@ fn tools_panel(
     });
 }
 
+/// The selected field's or object's name; Enter or leaving the box renames
+/// it through the session (undoable; a taken name shows as an error).
+fn name_editor(ui: &mut egui::Ui, state: &mut EditorState, es: &mut EditorSession, e: Entity, name: &str) {
+    if state.rename.as_ref().map(|r| r.0) != Some(e) {
+        state.rename = Some((e, name.to_string()));
+    }
+    let Some((_, buf)) = state.rename.as_mut() else {
+        return;
+    };
+    let r = ui.add(egui::TextEdit::singleline(buf).hint_text("name"));
+    let new = buf.trim();
+    if r.lost_focus() && new != name && !new.is_empty() {
+        es.apply(Command::Rename {
+            target: name.to_string(),
+            name: new.to_string(),
+        });
+    }
+}
+
 fn selection_panel(
     ui: &mut egui::Ui,
     state: &mut EditorState,
@@ -496,17 +518,7 @@ fn selection_panel(
     };
     ui.separator();
     ui.heading("Object");
-    if state.rename.as_ref().map(|r| r.0) != Some(e) {
-        state.rename = Some((e, name.clone()));
-    }
-    let buf = &mut state.rename.as_mut().unwrap().1;
-    let r = ui.text_edit_singleline(buf);
-    if r.lost_focus() && buf.trim() != name && !buf.trim().is_empty() {
-        es.apply(Command::Rename {
-            target: name.clone(),
-            name: buf.trim().to_string(),
-        });
-    }
+    name_editor(ui, state, es, e, &name);
     ui.label(format!("{} voxels", obj.bitmap.count()));
     ui.label("Move (G), rotate (R), scale (S), or type:");
     let mut tr = t.translation;
@@ -655,6 +667,32 @@ fn status_line(
     if let Some(i) = dismiss {
         state.errors.remove(i);
     }
+}
+
+/// The move gizmo: X / Y / Z arrows (red, green, blue) from the selected
+/// object's centre, brighter under the cursor or while dragged.
+fn draw_gizmo(ctx: &egui::Context, g: &GizmoView) {
+    let Some(c) = g.center else { return };
+    let painter = ctx.layer_painter(egui::LayerId::new(egui::Order::Foreground, "isrf_gizmo".into()));
+    let colors = [
+        egui::Color32::from_rgb(230, 70, 70),
+        egui::Color32::from_rgb(90, 200, 90),
+        egui::Color32::from_rgb(80, 130, 240),
+    ];
+    let c = egui::pos2(c.x, c.y);
+    for (i, tip) in g.tips.iter().enumerate() {
+        let Some(tip) = tip else { continue };
+        let hot = g.hovered == Some(i) || g.active == Some(i);
+        let (width, color) = if hot {
+            (4.0, colors[i].linear_multiply(1.3))
+        } else {
+            (2.5, colors[i].gamma_multiply(0.85))
+        };
+        let tip = egui::pos2(tip.x, tip.y);
+        painter.line_segment([c, tip], egui::Stroke::new(width, color));
+        painter.circle_filled(tip, if hot { 6.5 } else { 5.0 }, color);
+    }
+    painter.circle_filled(c, 3.5, egui::Color32::WHITE);
 }
 
 /// The stroke being painted, and the brush outline at the cursor.
