@@ -30,15 +30,21 @@ pub fn preset(kind: DatasetKind) -> TrainConfig {
             ..base
         },
         // Forward-facing: the NDC box is already tight; depth needs fewer
-        // grid points than the image plane. No TV: with tv_density 1e-2 /
-        // tv_sh 1e-3 the smoothing outweighed the photometric gradient on
-        // fern (train PSNR stuck at 10 dB, then everything was pruned).
+        // grid points than the image plane. 17 views leave depth ambiguous
+        // (walls, glass): a light TV (per touched voxel, about the size of
+        // the photometric gradient) keeps surfaces coherent. Measured on fern
+        // at res 192 / 1500 iterations, held-out PSNR: none 18.5 dB,
+        // 1e-6 / 1e-7 21.3 dB, 1e-5 / 1e-6 18.9 dB; 1e-2 / 1e-3 emptied the
+        // grid. At res 256 (this preset): 3000 iterations 21.84 dB in 11 min;
+        // 5000 iterations no better (21.8 dB).
         DatasetKind::Llff => TrainConfig {
-            iters: 5000,
+            iters: 3000,
             res: 256,
             coarse_res: 96,
             axis_scale: [1.0, 1.0, 0.5],
             shrink_bounds: false,
+            tv_density: 1e-6,
+            tv_sh: 1e-7,
             ..base
         },
         DatasetKind::Nerfstudio | DatasetKind::Colmap => TrainConfig {
