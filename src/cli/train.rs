@@ -291,7 +291,7 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
         };
         let msg = format!(
             "loss {loss_avg:.5}  psnr {psnr_avg:.2} dB{}  grid {:?}  active {:.1}%{feat}",
-            eval_psnr.map_or(String::new(), |p| format!("  held-out {p:.2} dB")),
+            eval_psnr.map_or(String::new(), |p| format!("  held-out (2 views) {p:.2} dB")),
             m.geom.res,
             100.0 * m.active_count() as f64 / m.len() as f64
         );
