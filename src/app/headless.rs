@@ -258,6 +258,7 @@ impl crate::command::FrameRenderer for GpuFrames {
     fn render_rgb(&mut self, scene: Arc<Scene>, camera: &Camera) -> Result<Vec<glam::Vec3>> {
         let k = camera.intrinsics;
         if self.renderer.as_ref().map(|r| r.size()) != Some((k.width, k.height)) {
+            // Drop the old app (and its GPU buffers) before making the next.
             self.renderer = None;
             self.renderer = Some(HeadlessRenderer::new(k.width, k.height)?);
         }

@@ -384,7 +384,7 @@ pub fn run_script_with(
     let n = script.commands.len();
     for (i, c) in script.commands.iter().enumerate() {
         let r = session
-            .apply_with(c, reborrow(&mut frames))
+            .apply_with(c, frames.as_mut().map(|f| &mut **f as _))
             .map_err(|e| Error::invalid(format!("step {} ({}): {e}", i + 1, c.kind())))?;
         progress(i + 1, n, &r.message);
     }
@@ -400,17 +400,6 @@ pub fn run_script_with(
         written.push(dest);
     }
     Ok(written)
-}
-
-/// A shorter-lived `&mut dyn` from the loop's renderer (`as_deref_mut`
-/// would tie it to the trait object's own lifetime).
-fn reborrow<'a>(
-    r: &'a mut Option<&mut dyn super::session::FrameRenderer>,
-) -> Option<&'a mut dyn super::session::FrameRenderer> {
-    match r {
-        Some(f) => Some(&mut **f),
-        None => None,
-    }
 }
 
 /// Files under `dir`, sorted.

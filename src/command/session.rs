@@ -489,15 +489,16 @@ impl Session {
                     ..Default::default()
                 };
                 // Depth needs the CPU renderer's per-pixel outputs.
-                let mut gpu = if *depth { None } else { renderer.as_deref_mut() };
-                let shared = gpu.is_some().then(|| Arc::new(scene.clone()));
+                let mut gpu = match renderer.as_deref_mut() {
+                    Some(g) if !*depth => Some((g, Arc::new(scene.clone()))),
+                    _ => None,
+                };
                 for fr in &cams.frames {
                     let cam = fr.camera.downscaled(*downscale);
                     let p = dir.join(format!("{}.png", fr.base_name()));
-                    if let (Some(g), Some(sc)) = (gpu.as_deref_mut(), &shared) {
-                        let rgb = g.render_rgb(sc.clone(), &cam)?;
-                        let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
-                        save_png(&p, w, h, &to_rgb8(&rgb))?;
+                    if let Some((g, shared)) = gpu.as_mut() {
+                        let rgb = g.render_rgb(shared.clone(), &cam)?;
+                        save_png(&p, cam.intrinsics.width, cam.intrinsics.height, &to_rgb8(&rgb))?;
                         out.files.push(p);
                         continue;
                     }

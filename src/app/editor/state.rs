@@ -32,9 +32,9 @@ pub struct TransformDrag {
     pub start: Transform,
     /// Cursor position (logical) when the drag began.
     pub cursor0: Vec2,
-    /// Moves only along this world axis (a gizmo arrow, or X / Y / Z
-    /// typed during G).
-    pub axis: Option<Vec3>,
+    /// Moves only along this world axis, an index into `Vec3::AXES` (a
+    /// gizmo arrow, or X / Y / Z typed during G).
+    pub axis: Option<usize>,
     /// Started by pressing a gizmo arrow: releasing the button confirms.
     pub gizmo: bool,
 }

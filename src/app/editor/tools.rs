@@ -127,7 +127,7 @@ pub fn gizmo_arrows(
     scale: f32,
 ) -> Option<(Vec2, [Option<Vec2>; 3])> {
     let c = to_screen(center)?;
-    let tips = [Vec3::X, Vec3::Y, Vec3::Z].map(|a| {
+    let tips = Vec3::AXES.map(|a| {
         let d = to_screen(center + a * scale)? - c;
         // Shorter than a fifth of the arrow per `scale`: pointing at us.
         (d.length() > 0.2 * GIZMO_ARROW).then(|| c + d.normalize() * GIZMO_ARROW)
@@ -173,7 +173,7 @@ pub fn gizmo(
     objects: Query<(&ObjectLayer, &Transform), Without<FieldLayer>>,
     fields: Query<(&FieldLayer, &Transform), Without<ObjectLayer>>,
 ) {
-    let active = state.transform.filter(|d| d.gizmo).and_then(|d| d.axis).map(axis_index);
+    let active = state.transform.filter(|d| d.gizmo).and_then(|d| d.axis);
     *view = GizmoView {
         active,
         ..Default::default()
@@ -203,9 +203,7 @@ pub fn gizmo(
     }
 }
 
-fn axis_index(a: Vec3) -> usize {
-    a.abs().max_position()
-}
+const AXIS_NAMES: [&str; 3] = ["X", "Y", "Z"];
 
 #[allow(clippy::too_many_arguments)]
 pub fn transform_modes(
@@ -225,27 +223,16 @@ pub fn transform_modes(
     let Ok(window) = windows.single() else { return };
     let Some(cursor) = window.cursor_position() else { return };
     if state.transform.is_none() {
+        // A press on a gizmo arrow starts an axis move; else G / R / S.
         let egui_pointer = wants.as_ref().is_some_and(|w| w.wants_pointer_input());
-        if let (Some(i), true, false) = (gizmo.hovered, buttons.just_pressed(MouseButton::Left), egui_pointer) {
-            if let Ok(entity) = selected.single() {
-                if let Ok((_, _, t)) = objects.get(entity) {
-                    state.transform = Some(TransformDrag {
-                        mode: TransformMode::Move,
-                        entity,
-                        start: *t,
-                        cursor0: cursor,
-                        axis: Some([Vec3::X, Vec3::Y, Vec3::Z][i]),
-                        gizmo: true,
-                    });
-                    state.status = format!("moving along {}: release to place, Esc cancels", ["X", "Y", "Z"][i]);
-                }
-            }
+        let arrow = gizmo
+            .hovered
+            .filter(|_| buttons.just_pressed(MouseButton::Left) && !egui_pointer);
+        let mode = if arrow.is_some() {
+            TransformMode::Move
+        } else if typing || state.fly || keys.any_pressed([KeyCode::ControlLeft, KeyCode::ControlRight]) {
             return;
-        }
-        if typing || state.fly || keys.any_pressed([KeyCode::ControlLeft, KeyCode::ControlRight]) {
-            return;
-        }
-        let mode = if keys.just_pressed(KeyCode::KeyG) {
+        } else if keys.just_pressed(KeyCode::KeyG) {
             TransformMode::Move
         } else if keys.just_pressed(KeyCode::KeyR) {
             TransformMode::Rotate
@@ -264,20 +251,19 @@ pub fn transform_modes(
             entity,
             start: *t,
             cursor0: cursor,
-            axis: None,
-            gizmo: false,
+            axis: arrow,
+            gizmo: arrow.is_some(),
         });
-        state.status = format!("{mode:?}: move the mouse, click or Enter confirms, Esc cancels");
+        state.status = match arrow {
+            Some(i) => format!("moving along {}: release to place, Esc cancels", AXIS_NAMES[i]),
+            None => format!("{mode:?}: move the mouse, click or Enter confirms, Esc cancels"),
+        };
         return;
     }
     let Some(mut drag) = state.transform else { return };
     // X / Y / Z lock a keyboard move to a world axis (again: unlock).
     if drag.mode == TransformMode::Move && !drag.gizmo {
-        for (k, a) in [
-            (KeyCode::KeyX, Vec3::X),
-            (KeyCode::KeyY, Vec3::Y),
-            (KeyCode::KeyZ, Vec3::Z),
-        ] {
+        for (a, k) in [KeyCode::KeyX, KeyCode::KeyY, KeyCode::KeyZ].into_iter().enumerate() {
             if keys.just_pressed(k) {
                 drag.axis = if drag.axis == Some(a) { None } else { Some(a) };
                 state.transform = Some(drag);
@@ -323,7 +309,7 @@ pub fn transform_modes(
             ) else {
                 return;
             };
-            if let Some(axis) = drag.axis {
+            if let Some(axis) = drag.axis.map(|i| Vec3::AXES[i]) {
                 // Along the axis: between the points of the axis line
                 // nearest to the two cursor rays.
                 let s = |r: Ray3d| closest_on_axis(center, axis, r.origin, r.direction.as_vec3());
