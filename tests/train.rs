@@ -11,6 +11,7 @@ use isrf::train::march::{backward, forward, GradBuf, MarchOpts, Scratch};
 use isrf::train::model::{bit, res_for, Model, PRUNED_RAW};
 use isrf::train::optim::{adam_step, corrected_lr, merge_marks, AdamParams, Moments};
 use isrf::train::step_of;
+use isrf::train::vm::{VmAppearance, VmShape};
 use isrf::util::SplitMix64;
 use std::sync::Arc;
 
@@ -38,6 +39,23 @@ fn random_model(res: usize, degree: usize, feat: Option<(usize, usize)>, seed: u
             *v = 2.0 * rng.unit() as f32 - 1.0;
         }
     }
+    m
+}
+
+/// Small VM sizes for the gradient and exactness tests.
+const SMALL_VM: VmShape = VmShape {
+    rank: 3,
+    out: 5,
+    hidden: 8,
+    view_pe: 1,
+};
+
+/// `m` with a random VM + MLP appearance on its grid.
+fn with_vm(mut m: Model, seed: u64) -> Model {
+    let mut vm = VmAppearance::new(SMALL_VM, m.geom.res, seed).unwrap();
+    // Larger components than the training init, so colours vary visibly.
+    vm.grid.iter_mut().for_each(|v| *v *= 6.0);
+    m.vm = Some(vm);
     m
 }
 
@@ -168,6 +186,10 @@ enum Kind {
     DensityFeatures,
     Sh,
     Features,
+    /// Density, planes/lines and basis+MLP of a VM-appearance model.
+    DensityVm,
+    VmGrid,
+    VmNet,
 }
 
 /// Compares analytic and central-difference gradients on the parameters
@@ -175,13 +197,19 @@ enum Kind {
 fn check_gradients(degree: usize, kind: Kind) {
     let feat = matches!(kind, Kind::Features | Kind::DensityFeatures);
     let m0 = random_model(10, degree, feat.then_some((7, 4)), 10 + degree as u64);
+    let m0 = match kind {
+        Kind::DensityVm | Kind::VmGrid | Kind::VmNet => with_vm(m0, 3),
+        _ => m0,
+    };
     let opts = exact_opts(step_of(&m0.geom), feat);
     let probe = Probe::new(24, 4, 20 + degree as u64);
     let g = probe.grads(&m0, &opts);
     let (analytic, eps): (&[f32], f32) = match kind {
-        Kind::Density | Kind::DensityFeatures => (&g.density, 1e-2),
+        Kind::Density | Kind::DensityFeatures | Kind::DensityVm => (&g.density, 1e-2),
         Kind::Sh => (&g.sh, 1e-2),
         Kind::Features => (&g.feat, 1e-2),
+        Kind::VmGrid => (&g.vm_grid, 1e-2),
+        Kind::VmNet => (&g.vm_net, 1e-2),
     };
     let mut order: Vec<usize> = (0..analytic.len()).collect();
     order.sort_by(|&i, &j| analytic[j].abs().total_cmp(&analytic[i].abs()));
@@ -194,9 +222,11 @@ fn check_gradients(degree: usize, kind: Kind) {
         let eval = |delta: f32| {
             let mut m = m0.clone();
             match kind {
-                Kind::Density | Kind::DensityFeatures => m.density[i] += delta,
+                Kind::Density | Kind::DensityFeatures | Kind::DensityVm => m.density[i] += delta,
                 Kind::Sh => m.sh[i] += delta,
                 Kind::Features => m.features.as_mut().unwrap().data[i] += delta,
+                Kind::VmGrid => m.vm.as_mut().unwrap().grid[i] += delta,
+                Kind::VmNet => m.vm.as_mut().unwrap().net[i] += delta,
             }
             probe.loss(&m, &opts)
         };
@@ -227,6 +257,80 @@ fn sh_gradient_matches_finite_differences() {
 #[test]
 fn feature_gradient_matches_finite_differences() {
     check_gradients(1, Kind::Features);
+}
+
+#[test]
+fn vm_appearance_gradients_match_finite_differences() {
+    check_gradients(0, Kind::VmGrid);
+    check_gradients(0, Kind::VmNet);
+    check_gradients(0, Kind::DensityVm);
+}
+
+#[test]
+fn vm_forward_matches_reference_renderer_and_file_round_trip() {
+    // The trained VM + MLP exports as the renderer's VM appearance: the
+    // training forward pass and `isrf render` compute the same colours,
+    // also after a save / load through a field file.
+    let mut m = with_vm(random_model(12, 0, None, 4), 5);
+    // A stronger network so that colours differ clearly between rays.
+    m.vm.as_mut().unwrap().net.iter_mut().for_each(|v| *v *= 2.5);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("vm.safetensors");
+    m.to_field().save(&path).unwrap();
+    let field = Arc::new(isrf::field::Field::load(&path).unwrap());
+    assert!(matches!(field.appearance, isrf::field::Appearance::Vm { .. }));
+    let step = step_of(&m.geom);
+    let opts = exact_opts(step, false);
+    let mut scene = Scene::single(field);
+    scene.background = opts.background;
+    let rs = rays(48, 6);
+    let reference = render_rays(
+        &scene,
+        &rs,
+        &RenderOptions {
+            step: Some(step),
+            min_transmittance: 0.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let mut s = Scratch::default();
+    let mut max_c = 0.0f32;
+    let mut spread = 0.0f32;
+    for (i, r) in rs.iter().enumerate() {
+        let out = forward(&m, r, &opts, &mut s);
+        max_c = max_c.max((out.color - reference.color[i]).abs().max_element());
+        spread = spread.max((reference.color[i] - reference.color[0]).abs().max_element());
+    }
+    assert!(spread > 0.05, "colours should vary between rays ({spread})");
+    assert!(max_c < 2e-4, "VM colour differs from the renderer by {max_c}");
+}
+
+#[test]
+fn vm_resampling_is_exact_on_nested_grids() {
+    // Upsampling 7 → 13 points per axis nests the old cells: plane·line
+    // products are bilinear × linear inside each old cell, which the finer
+    // interpolation reproduces exactly.
+    let coarse = GridGeom::new(unit_box(), [7, 7, 7]);
+    let fine = GridGeom::new(unit_box(), [13, 13, 13]);
+    let m = with_vm(Model::new(coarse, 0, 0.0, 1.0).unwrap(), 8);
+    let r = m.resampled(fine).unwrap();
+    let (a, b) = (m.vm.as_ref().unwrap(), r.vm.as_ref().unwrap());
+    assert_eq!(b.res, [13; 3]);
+    assert_eq!(a.net, b.net);
+    let mut rng = SplitMix64::new(9);
+    let (mut ra, mut rb) = (vec![0.0; SMALL_VM.row_len()], vec![0.0; SMALL_VM.row_len()]);
+    let mut enc = vec![];
+    a.encode_dir(Vec3::Z, &mut enc);
+    for _ in 0..50 {
+        let p = Vec3::new(rng.unit() as f32, rng.unit() as f32, rng.unit() as f32) * 2.0 - 1.0;
+        let ca = a.shade(coarse.to_grid(p), &enc, &mut ra);
+        let cb = b.shade(fine.to_grid(p), &enc, &mut rb);
+        for k in 0..SMALL_VM.comps() {
+            assert!((ra[k] - rb[k]).abs() < 1e-5, "component {k}: {} vs {}", ra[k], rb[k]);
+        }
+        assert!((Vec3::from(ca) - Vec3::from(cb)).abs().max_element() < 1e-5);
+    }
 }
 
 #[test]

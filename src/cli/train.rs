@@ -71,6 +71,10 @@ pub struct Args {
     /// Spherical-harmonic degree of the colour (0–2).
     #[arg(long)]
     pub sh_degree: Option<usize>,
+    /// Colour model: dense SH per voxel (default, fastest on a CPU) or the
+    /// paper's VM + MLP (TensoRF; CPU renderer only, about 3× slower).
+    #[arg(long, value_enum)]
+    pub appearance: Option<isrf::train::trainer::AppearanceKind>,
     /// Background colour the images are composited on (default: white).
     #[arg(long, value_parser = crate::cli::render::parse_rgb)]
     pub background: Option<glam::Vec3>,
@@ -166,6 +170,9 @@ fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig
     }
     if let Some(s) = a.seed {
         c.seed = s;
+    }
+    if let Some(k) = a.appearance {
+        c.appearance = k;
     }
     c.feature_iters = a.feature_iters.unwrap_or(if teacher { 1500 } else { 0 });
     c.validate()?;

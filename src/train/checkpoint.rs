@@ -4,11 +4,12 @@
 //!
 //! `__metadata__`: `format = "isrf-train-checkpoint"`, `version`, `state`
 //! (JSON [`State`]). Tensors (F32 unless noted): `density [n]`, `sh [n, 3K]`,
-//! `active` (U8, packed bits), `features [nf, C]`, `m.*` / `v.*` moments of
-//! each, `history [iters, 7]`.
+//! `active` (U8, packed bits), `features [nf, C]`, `vm.grid` / `vm.net` (VM
+//! appearance), `m.*` / `v.*` moments of each, `history [iters, 7]`.
 
 use super::model::{DenseGrid, Model};
 use super::optim::Moments;
+use super::vm::{VmAppearance, VmShape};
 use super::trainer::{OptState, StepStats, TrainConfig};
 use crate::error::{write_atomic, Error, Result};
 use crate::field::geom::check_res;
@@ -35,6 +36,9 @@ pub struct State {
     pub shift: f32,
     /// (resolution, channels) of the feature grid, if any.
     pub features: Option<([usize; 3], usize)>,
+    /// Sizes and grid resolution of the VM appearance, if any.
+    #[serde(default)]
+    pub vm: Option<(VmShape, [usize; 3])>,
     /// Free-form description of the data trained on (dataset path, options),
     /// checked on resume.
     pub data: String,
@@ -73,6 +77,7 @@ pub fn save(
         degree: model.degree,
         shift: model.shift,
         features: model.features.as_ref().map(|f| (f.geom.res, f.channels)),
+        vm: model.vm.as_ref().map(|v| (v.shape, v.res)),
         data: data.to_string(),
     };
     let mut names = vec![];
@@ -91,6 +96,14 @@ pub fn save(
         push("features", &f.data);
         push("m.features", &opt.features.m);
         push("v.features", &opt.features.v);
+    }
+    if let Some(vm) = &model.vm {
+        push("vm.grid", &vm.grid);
+        push("vm.net", &vm.net);
+        push("m.vm.grid", &opt.vm_grid.m);
+        push("v.vm.grid", &opt.vm_grid.v);
+        push("m.vm.net", &opt.vm_net.m);
+        push("v.vm.net", &opt.vm_net.v);
     }
     let hist: Vec<f32> = history
         .iter()
@@ -164,6 +177,8 @@ pub fn load(path: &Path) -> Result<Restored> {
             v: t.f32("v.sh", &[n * k])?,
         },
         features: Moments::default(),
+        vm_grid: Moments::default(),
+        vm_net: Moments::default(),
         t: state.adam_t,
     };
     let features = match state.features {
@@ -209,7 +224,20 @@ pub fn load(path: &Path) -> Result<Restored> {
             seconds: h[6],
         })
         .collect();
-    let model = Model::from_parts(geom, state.shift, state.degree, density, sh, active, features)?;
+    let mut model = Model::from_parts(geom, state.shift, state.degree, density, sh, active, features)?;
+    if let Some((shape, res)) = state.vm {
+        let empty = VmAppearance::new(shape, res, 0).map_err(|e| bad(e.to_string()))?;
+        let (gl, nl) = (empty.grid.len(), empty.net.len());
+        model.vm = Some(VmAppearance::from_parts(shape, res, t.f32("vm.grid", &[gl])?, t.f32("vm.net", &[nl])?)?);
+        opt.vm_grid = Moments {
+            m: t.f32("m.vm.grid", &[gl])?,
+            v: t.f32("v.vm.grid", &[gl])?,
+        };
+        opt.vm_net = Moments {
+            m: t.f32("m.vm.net", &[nl])?,
+            v: t.f32("v.vm.net", &[nl])?,
+        };
+    }
     Ok(Restored {
         state,
         model,

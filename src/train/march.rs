@@ -43,6 +43,8 @@ struct Sample {
     dsig: f32,
     color: [f32; 3],
     shaded: bool,
+    /// Start of this sample's VM row in `Scratch::vm_rows` (VM models).
+    row: u32,
 }
 
 /// Per-thread scratch: the samples of the last forward pass.
@@ -52,6 +54,11 @@ pub struct Scratch {
     /// Features of shaded samples, `samples × channels` (unshaded rows zero).
     feats: Vec<f32>,
     tmp: Vec<f32>,
+    /// VM models: the encoded ray direction, per shaded sample the values
+    /// the backward pass needs, and backward scratch.
+    dir_enc: Vec<f32>,
+    vm_rows: Vec<f32>,
+    vm_tmp: Vec<f32>,
     final_trans: f32,
     color: Vec3,
     pub features: Vec<f32>,
@@ -77,6 +84,9 @@ pub struct GradBuf {
     pub marks: Vec<u64>,
     pub feat: Vec<f32>,
     pub feat_marks: Vec<u64>,
+    /// VM appearance: dense gradients of the grid and network arrays.
+    pub vm_grid: Vec<f32>,
+    pub vm_net: Vec<f32>,
 }
 
 impl GradBuf {
@@ -89,12 +99,18 @@ impl GradBuf {
             marks: vec![0; n.div_ceil(64)],
             feat: vec![0.0; nf * fc],
             feat_marks: vec![0; nf.div_ceil(64)],
+            vm_grid: vec![0.0; model.vm.as_ref().map_or(0, |v| v.grid.len())],
+            vm_net: vec![0.0; model.vm.as_ref().map_or(0, |v| v.net.len())],
         }
     }
     /// True when this buffer's shape fits `model` (after resampling it won't).
     pub fn fits(&self, model: &Model) -> bool {
         let nf = model.features.as_ref().map_or(0, |f| f.geom.len() * f.channels);
-        self.density.len() == model.len() && self.sh.len() == model.len() * model.sh_stride() && self.feat.len() == nf
+        let (vg, vn) = model.vm.as_ref().map_or((0, 0), |v| (v.grid.len(), v.net.len()));
+        self.density.len() == model.len()
+            && self.sh.len() == model.len() * model.sh_stride()
+            && self.feat.len() == nf
+            && (self.vm_grid.len(), self.vm_net.len()) == (vg, vn)
     }
 }
 
@@ -186,6 +202,23 @@ fn span(model: &Model, ray: &Ray, step: f32) -> Option<(i64, f32)> {
     Some(((t0 / step - 0.5).ceil().max(0.0) as i64, t1))
 }
 
+/// Colour of a sample from the SH coefficients at its cell's corners.
+#[inline]
+fn sh_color<const K: usize>(sh: &[f32], base: usize, off: &[usize; 8], w8: &[f32; 8], basis: &[f32]) -> [f32; 3] {
+    let stride = 3 * K;
+    let mut acc = [[0.0f32; K]; 3];
+    for k in 0..8 {
+        let v = (base + off[k]) * stride;
+        let src = &sh[v..v + stride];
+        for c in 0..3 {
+            for j in 0..K {
+                acc[c][j] += w8[k] * src[c * K + j];
+            }
+        }
+    }
+    [0, 1, 2].map(|c| sigmoid((0..K).map(|j| acc[c][j] * basis[j]).sum()))
+}
+
 /// Forward pass of one ray; fills `scratch` for [`backward`].
 pub fn forward(model: &Model, ray: &Ray, opts: &MarchOpts, scratch: &mut Scratch) -> RayOut {
     match model.degree {
@@ -212,8 +245,11 @@ fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut
     let lat = Lattice::new(&model.geom);
     let flat = model.features.as_ref().map(|f| Lattice::new(&f.geom));
     let basis = sh::basis(ray.dir);
+    s.vm_rows.clear();
+    if let Some(vm) = &model.vm {
+        vm.encode_dir(ray.dir, &mut s.dir_enc);
+    }
     let dt = opts.step;
-    let stride = 3 * K;
     let bd = model.block_dims;
     let dir_g = ray.dir * lat.scale;
     if let Some((mut i, t1)) = span(model, ray, dt) {
@@ -265,27 +301,20 @@ fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut
                 dsig,
                 color: [0.0; 3],
                 shaded: false,
+                row: 0,
             };
             if w > opts.weight_floor {
-                let mut acc = [[0.0f32; K]; 3];
-                for k in 0..8 {
-                    let v = (base + lat.off[k]) * stride;
-                    let src = &model.sh[v..v + stride];
-                    let wk = w8[k];
-                    for c in 0..3 {
-                        for j in 0..K {
-                            acc[c][j] += wk * src[c * K + j];
-                        }
+                smp.color = match &model.vm {
+                    Some(vm) => {
+                        let start = s.vm_rows.len();
+                        s.vm_rows.resize(start + vm.shape.row_len(), 0.0);
+                        smp.row = start as u32;
+                        vm.shade(g, &s.dir_enc, &mut s.vm_rows[start..])
                     }
-                }
-                let mut c3 = [0.0f32; 3];
-                for c in 0..3 {
-                    let z: f32 = (0..K).map(|j| acc[c][j] * basis[j]).sum();
-                    c3[c] = sigmoid(z);
-                }
-                smp.color = c3;
+                    None => sh_color::<K>(&model.sh[..], base, &lat.off, &w8, &basis),
+                };
                 smp.shaded = true;
-                color += w * Vec3::from(c3);
+                color += w * Vec3::from(smp.color);
                 depth += w * t;
                 if fc > 0 {
                     let start = s.feats.len();
@@ -370,7 +399,13 @@ fn backward_k<const K: usize>(
         } else {
             -g.dot(after)
         };
-        if smp.shaded {
+        if let (true, Some(vm)) = (smp.shaded, &model.vm) {
+            let dz = [0, 1, 2].map(|ch| w * g3[ch] * smp.color[ch] * (1.0 - smp.color[ch]));
+            let start = smp.row as usize;
+            let row = &s.vm_rows[start..start + vm.shape.row_len()];
+            let gp = lat.grid(ray.at(smp.t));
+            vm.backward(gp, row, dz, &mut grads.vm_grid, &mut grads.vm_net, &mut s.vm_tmp);
+        } else if smp.shaded {
             // Colour: through the sigmoid, the SH basis and the weights.
             let mut d = [[0.0f32; K]; 3];
             for ch in 0..3 {
@@ -389,6 +424,8 @@ fn backward_k<const K: usize>(
                     }
                 }
             }
+        }
+        if smp.shaded {
             after += w * c;
             if fc > 0 {
                 let phi = &s.feats[idx * fc..(idx + 1) * fc];

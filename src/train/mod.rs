@@ -1,5 +1,6 @@
 //! Fitting a field to posed images (DESIGN.md "train"): a DVGO-style dense
-//! density grid with dense spherical-harmonic colour, trained on the CPU with
+//! density grid with dense spherical-harmonic colour (or, on request, the
+//! paper's VM + MLP appearance, [`vm`]), trained on the CPU with
 //! hand-written forward/backward passes ([`march`]) and sparse Adam
 //! ([`optim`]), coarse to fine with pruning ([`trainer`]); then, optionally,
 //! a dense feature grid distilled from teacher features ([`teacher`]).
@@ -19,6 +20,7 @@ pub mod session;
 pub mod teacher;
 pub mod trainer;
 pub mod vit;
+pub mod vm;
 
 pub use march::{GradBuf, MarchOpts, RayOut, Scratch};
 pub use model::{DenseGrid, Model};

@@ -17,6 +17,7 @@ use crate::error::Result;
 use crate::field::geom::check_res;
 use crate::field::sh::SH_COEFFS;
 use crate::field::{Aabb, Activation, Appearance, ChannelGrid, DensityGrid, Features, Field, GridGeom};
+use super::vm::VmAppearance;
 use glam::Vec3;
 use half::f16;
 use rayon::prelude::*;
@@ -49,6 +50,8 @@ pub struct Model {
     pub density: Vec<f32>,
     pub sh: Vec<f32>,
     pub features: Option<DenseGrid>,
+    /// VM + MLP appearance; when present it replaces the SH colour.
+    pub vm: Option<VmAppearance>,
     /// Trainable voxels (not pruned), one bit per grid point.
     pub active: Vec<u64>,
     /// Per cell, indexed by its lowest corner: 1 when any corner is active.
@@ -86,6 +89,7 @@ impl Model {
             density: vec![raw0; n],
             sh: vec![0.0; n * 3 * sh_coeffs(degree)],
             features: None,
+            vm: None,
             active: vec![u64::MAX; n.div_ceil(64)],
             cells: vec![],
             blocks: vec![],
@@ -127,6 +131,7 @@ impl Model {
             density,
             sh,
             features,
+            vm: None,
             active,
             cells: vec![],
             blocks: vec![],
@@ -281,7 +286,9 @@ impl Model {
             }
         });
         let features = self.features.clone();
-        Model::from_parts(geom, self.shift, self.degree, density, sh, active, features)
+        let mut m = Model::from_parts(geom, self.shift, self.degree, density, sh, active, features)?;
+        m.vm = self.vm.as_ref().map(|v| v.resampled(&self.geom, &geom));
+        Ok(m)
     }
 
     /// The same model with SH degree raised to `degree` (new coefficients 0).
@@ -318,20 +325,13 @@ impl Model {
     }
 
     /// The field the renderer reads: raw density, SH padded to degree 2 (or
-    /// plain RGB never: colour always goes through the sigmoid) in f16.
+    /// plain RGB never: colour always goes through the sigmoid) in f16, or
+    /// the VM + MLP appearance as trained.
     pub fn to_field(&self) -> Field {
-        let k = sh_coeffs(self.degree);
-        let n = self.len();
-        let mut sh = vec![f16::ZERO; n * 3 * SH_COEFFS];
-        sh.par_chunks_mut(3 * SH_COEFFS)
-            .zip(self.sh.par_chunks(3 * k))
-            .for_each(|(d, s)| {
-                for c in 0..3 {
-                    for j in 0..k {
-                        d[c * SH_COEFFS + j] = f16::from_f32(s[c * k + j]);
-                    }
-                }
-            });
+        let appearance = match &self.vm {
+            Some(vm) => vm.to_field(self.geom),
+            None => self.sh_appearance(),
+        };
         let features = self.features.as_ref().map(|f| {
             Features::Grid(ChannelGrid::dense(
                 f.geom,
@@ -345,10 +345,27 @@ impl Model {
                 raw: self.density.clone(),
                 activation: self.activation(),
             },
-            Appearance::Sh2(ChannelGrid::dense(self.geom, 3 * SH_COEFFS, sh)),
+            appearance,
             features,
             None,
         )
+    }
+
+    /// The SH coefficients padded to degree 2, in f16.
+    fn sh_appearance(&self) -> Appearance {
+        let k = sh_coeffs(self.degree);
+        let n = self.len();
+        let mut sh = vec![f16::ZERO; n * 3 * SH_COEFFS];
+        sh.par_chunks_mut(3 * SH_COEFFS)
+            .zip(self.sh.par_chunks(3 * k))
+            .for_each(|(d, s)| {
+                for c in 0..3 {
+                    for j in 0..k {
+                        d[c * SH_COEFFS + j] = f16::from_f32(s[c * k + j]);
+                    }
+                }
+            });
+        Appearance::Sh2(ChannelGrid::dense(self.geom, 3 * SH_COEFFS, sh))
     }
 
     /// Smallest box holding the voxels whose per-sample opacity at `step`

@@ -129,6 +129,26 @@ pub fn adam_step(
         });
 }
 
+/// [`adam_step`] on every value (stride 1): small dense parameter sets such
+/// as the VM planes and the MLP, which every ray touches.
+pub fn dense_adam_step(
+    params: &mut [f32],
+    mom: &mut Moments,
+    grads: &mut [&mut Vec<f32>],
+    lr_t: f32,
+    hp: AdamParams,
+    clamp: (f32, f32),
+) {
+    let n = params.len();
+    let mut all = vec![u64::MAX; n.div_ceil(64)];
+    if n % 64 != 0 {
+        if let Some(last) = all.last_mut() {
+            *last = (1u64 << (n % 64)) - 1;
+        }
+    }
+    adam_step(params, mom, grads, 1, &all, None, lr_t, hp, clamp);
+}
+
 /// Bias-corrected learning rate of Adam step `t` (1-based).
 pub fn corrected_lr(lr: f32, t: u64, hp: AdamParams) -> f32 {
     let t = t.min(1_000_000) as i32;

@@ -5,7 +5,8 @@
 
 use super::march::{backward, forward, GradBuf, MarchOpts, RayOut, Scratch};
 use super::model::{res_for, Model, PRUNED_RAW};
-use super::optim::{adam_step, add_tv, corrected_lr, merge_marks, AdamParams, Moments};
+use super::optim::{adam_step, add_tv, corrected_lr, dense_adam_step, merge_marks, AdamParams, Moments};
+use super::vm::{VmAppearance, VmShape};
 use super::rays::RaySet;
 use super::teacher::FeatureMaps;
 use crate::camera::Ray;
@@ -75,6 +76,25 @@ pub struct TrainConfig {
     pub feature_lambda: f32,
     /// Keep density and colour fixed while distilling features.
     pub freeze_geometry: bool,
+    /// Colour model after the first stage: dense SH (the default) or the
+    /// paper's VM + MLP.
+    pub appearance: AppearanceKind,
+    /// Sizes of the VM + MLP appearance.
+    pub vm: VmShape,
+    /// Adam learning rates of the VM planes/lines and of the basis + MLP.
+    pub lr_vm_grid: f32,
+    pub lr_vm_net: f32,
+}
+
+/// Which colour model trains (see `isrf train --appearance`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum AppearanceKind {
+    /// Dense spherical harmonics per voxel (degree `sh_degree`).
+    #[default]
+    Sh,
+    /// TensoRF vector–matrix components with a small MLP.
+    Vm,
 }
 
 impl Default for TrainConfig {
@@ -108,6 +128,15 @@ impl Default for TrainConfig {
             feature_res: 64,
             feature_lambda: 1e-3,
             freeze_geometry: false,
+            appearance: AppearanceKind::Sh,
+            vm: VmShape {
+                rank: 16,
+                out: 27,
+                hidden: 64,
+                view_pe: 2,
+            },
+            lr_vm_grid: 0.02,
+            lr_vm_net: 1e-3,
         }
     }
 }
@@ -137,6 +166,7 @@ impl TrainConfig {
             "last_stage_at must be in [0, 1)"
         );
         ensure!(self.sh_degree <= 2, "SH degree must be 0, 1 or 2");
+        self.vm.validate()?;
         ensure!((1e-6..0.5).contains(&self.init_alpha), "init_alpha must be in (0, 0.5)");
         ensure!(
             self.feature_res >= 4 && self.feature_res <= 512,
@@ -153,6 +183,8 @@ impl TrainConfig {
             self.tv_sh,
             self.tv_features,
             self.feature_lambda,
+            self.lr_vm_grid,
+            self.lr_vm_net,
         ];
         ensure!(
             finite.iter().all(|x| x.is_finite() && *x >= 0.0),
@@ -204,6 +236,8 @@ pub struct OptState {
     pub density: Moments,
     pub sh: Moments,
     pub features: Moments,
+    pub vm_grid: Moments,
+    pub vm_net: Moments,
     /// Adam steps since the moments were last reset (bias correction).
     pub t: u64,
 }
@@ -268,14 +302,18 @@ impl Trainer {
     fn reset_buffers(&mut self, keep_moments: bool) {
         let nt = rayon::current_num_threads().max(1);
         self.grads = (0..nt).map(|_| GradBuf::new(&self.model)).collect();
+        let (vg, vn) = self.model.vm.as_ref().map_or((0, 0), |v| (v.grid.len(), v.net.len()));
         let fits = self.opt.density.m.len() == self.model.len()
             && self.opt.sh.m.len() == self.model.sh.len()
-            && self.opt.features.m.len() == self.model.features.as_ref().map_or(0, |f| f.data.len());
+            && self.opt.features.m.len() == self.model.features.as_ref().map_or(0, |f| f.data.len())
+            && (self.opt.vm_grid.m.len(), self.opt.vm_net.m.len()) == (vg, vn);
         if !keep_moments || !fits {
             self.opt = OptState {
                 density: Moments::new(self.model.len()),
                 sh: Moments::new(self.model.sh.len()),
                 features: Moments::new(self.model.features.as_ref().map_or(0, |f| f.data.len())),
+                vm_grid: Moments::new(vg),
+                vm_net: Moments::new(vn),
                 t: 0,
             };
         }
@@ -325,7 +363,17 @@ impl Trainer {
                 }
             }
             let geom = GridGeom::new(bounds, res_for(bounds, res, self.config.axis_scale));
-            self.model = self.model.resampled(geom)?.with_degree(self.config.sh_degree);
+            let resampled = self.model.resampled(geom)?;
+            self.model = match self.config.appearance {
+                AppearanceKind::Sh => resampled.with_degree(self.config.sh_degree),
+                AppearanceKind::Vm => resampled,
+            };
+            // With VM, the first stage learns geometry with cheap SH-0
+            // colour; the VM takes over from the second (and is resampled
+            // along with the grid after that).
+            if self.config.appearance == AppearanceKind::Vm && self.model.vm.is_none() {
+                self.model.vm = Some(VmAppearance::new(self.config.vm, geom.res, self.config.seed)?);
+            }
             self.reset_buffers(false);
             self.notes.push(format!(
                 "iteration {}: stage {k}: pruned to {kept} voxels, box {:.3?}..{:.3?}, grid {:?}, {} active, {} of {} rays meet the box",
@@ -532,6 +580,14 @@ impl Trainer {
                 hp,
                 (-1e3, 1e3),
             );
+        }
+        if let (Some(vm), false) = (self.model.vm.as_mut(), frozen) {
+            let lr_g = corrected_lr(cfg.lr_vm_grid * decay, t, hp);
+            let lr_n = corrected_lr(cfg.lr_vm_net * decay, t, hp);
+            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.vm_grid).collect();
+            dense_adam_step(&mut vm.grid, &mut self.opt.vm_grid, &mut gs, lr_g, hp, (-1e3, 1e3));
+            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.vm_net).collect();
+            dense_adam_step(&mut vm.net, &mut self.opt.vm_net, &mut gs, lr_n, hp, (-1e3, 1e3));
         }
         if features {
             let mut fm: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.feat_marks).collect();
