@@ -76,14 +76,6 @@ const LAYER_COLOR_EDIT: u32 = 1u;
 const LAYER_HIGHLIGHT: u32 = 2u;
 const LAYER_DIM: u32 = 4u;
 
-// Per-ray state of each layer.
-var<private> lo_origin: array<vec3<f32>, MAX_LAYERS>;
-var<private> lo_dir: array<vec3<f32>, MAX_LAYERS>;
-// Until which ray distance the cached empty / occupied state holds.
-var<private> valid_until: array<f32, MAX_LAYERS>;
-var<private> occupied: array<u32, MAX_LAYERS>;
-var<private> sigma: array<f32, MAX_LAYERS>;
-
 // Trilinear cell of a local point: flat index of the base corner,
 // fractions; `inside` false outside the grid (geom.rs `corners`).
 struct Cell {
@@ -91,6 +83,16 @@ struct Cell {
     frac: vec3<f32>,
     inside: bool,
 };
+
+// Per-ray state of each layer.
+var<private> lo_origin: array<vec3<f32>, MAX_LAYERS>;
+var<private> lo_dir: array<vec3<f32>, MAX_LAYERS>;
+// Until which ray distance the cached empty / occupied state holds.
+var<private> valid_until: array<f32, MAX_LAYERS>;
+var<private> occupied: array<u32, MAX_LAYERS>;
+var<private> sigma: array<f32, MAX_LAYERS>;
+// The cell of each layer's last density sample (shading reuses it).
+var<private> cells: array<Cell, MAX_LAYERS>;
 
 fn cell_of(f: FieldInfo, p: vec3<f32>) -> Cell {
     var out: Cell;
@@ -145,25 +147,34 @@ fn raw_density(f: FieldInfo, c: Cell) -> f32 {
     return mix(mix(c00, c10, fr.y), mix(c01, c11, fr.y), fr.z);
 }
 
+// One corner of `rgb_at`: (w·rgb, w) where the point stores a colour.
+fn rgb_tap(q: u32, w: f32) -> vec4<f32> {
+    let ws = select(0.0, w, (q >> 30u) == 1u);
+    return ws * vec4<f32>(f32(q & 1023u), f32((q >> 10u) & 1023u), f32((q >> 20u) & 1023u), 1.0);
+}
+
 // RGB colour in [0, 1] at a cell (ChannelGrid::sample then clamp): RGB10
 // per grid point, bits 30..32 = 1 where stored; sparse colours renormalise
-// over the stored corners.
+// over the stored corners. The 8 corners are written out with their weights
+// computed once: on lavapipe a corner loop with per-corner helpers costs a
+// quarter of the frame, and local arrays (even in branches not taken) slow
+// the whole shader down by 2x.
 fn rgb_at(f: FieldInfo, c: Cell) -> vec3<f32> {
-    var acc = vec3<f32>(0.0);
-    var wsum = 0.0;
     let o = f.offsets.y + c.base;
-    for (var k = 0u; k < 8u; k++) {
-        let q = colors[o + corner(f, k)];
-        let w = select(0.0, corner_weight(c.frac, k), (q >> 30u) == 1u);
-        acc += w * vec3<f32>(f32(q & 1023u), f32((q >> 10u) & 1023u), f32((q >> 20u) & 1023u));
-        wsum += w;
-    }
-    if wsum <= 1e-6 {
+    let sy = f.res.x;
+    let sz = f.res.x * f.res.y;
+    let a = c.frac;
+    let g = vec3<f32>(1.0) - a;
+    let sum = rgb_tap(colors[o], g.x * g.y * g.z) + rgb_tap(colors[o + 1u], a.x * g.y * g.z)
+        + rgb_tap(colors[o + sy], g.x * a.y * g.z) + rgb_tap(colors[o + sy + 1u], a.x * a.y * g.z)
+        + rgb_tap(colors[o + sz], g.x * g.y * a.z) + rgb_tap(colors[o + sz + 1u], a.x * g.y * a.z)
+        + rgb_tap(colors[o + sz + sy], g.x * a.y * a.z) + rgb_tap(colors[o + sz + sy + 1u], a.x * a.y * a.z);
+    if sum.w <= 1e-6 {
         return vec3<f32>(0.0);
     }
-    acc = acc / 1023.0;
+    var acc = sum.xyz / 1023.0;
     if (f.res.w & COLOR_SPARSE) != 0u {
-        acc = acc / wsum;
+        acc = acc / sum.w;
     }
     return clamp(acc, vec3<f32>(0.0), vec3<f32>(1.0));
 }
@@ -245,6 +256,13 @@ fn bit(offset: u32, idx: u32) -> f32 {
     return f32((w >> (idx & 31u)) & 1u);
 }
 
+// One corner of `mask_factor`: (w·σ·m, w·σ, w·m).
+fn mask_tap(f: FieldInfo, words: u32, base: u32, off: u32, w: f32) -> vec3<f32> {
+    let m = bit(words, base + off);
+    let ws = w * activate(f, density[f.offsets.x + base + off]);
+    return vec3<f32>(ws * m, ws, w * m);
+}
+
 // The mask value b(p) (keep) or 1 - b(p) (remove), where b is the share of
 // the density that comes from masked corners, b = Σ w σ m / Σ w σ over the
 // 8 corners with σ activated (render::bitmap_fraction): a removal leaves no
@@ -255,22 +273,20 @@ fn mask_factor(info: vec4<u32>, f: FieldInfo, c: Cell) -> f32 {
     if kind != MASK_KEEP && kind != MASK_REMOVE {
         return 1.0;
     }
-    let o = f.offsets.x + c.base;
-    var inside = 0.0;
-    var total = 0.0;
-    var plain = 0.0;
-    for (var k = 0u; k < 8u; k++) {
-        let off = corner(f, k);
-        let cw = corner_weight(c.frac, k);
-        let w = cw * activate(f, density[o + off]);
-        let m = bit(info.z, c.base + off);
-        total += w;
-        inside += w * m;
-        plain += cw * m;
-    }
-    var b = plain;
-    if total > 0.0 {
-        b = inside / total;
+    let sy = f.res.x;
+    let sz = f.res.x * f.res.y;
+    let a = c.frac;
+    let g = vec3<f32>(1.0) - a;
+    let o = c.base;
+    let z = info.z;
+    // Corners written out as in `rgb_at` (lavapipe is much faster so).
+    let s = mask_tap(f, z, o, 0u, g.x * g.y * g.z) + mask_tap(f, z, o, 1u, a.x * g.y * g.z)
+        + mask_tap(f, z, o, sy, g.x * a.y * g.z) + mask_tap(f, z, o, sy + 1u, a.x * a.y * g.z)
+        + mask_tap(f, z, o, sz, g.x * g.y * a.z) + mask_tap(f, z, o, sz + 1u, a.x * g.y * a.z)
+        + mask_tap(f, z, o, sz + sy, g.x * a.y * a.z) + mask_tap(f, z, o, sz + sy + 1u, a.x * a.y * a.z);
+    var b = s.z;
+    if s.y > 0.0 {
+        b = s.x / s.y;
     }
     if kind == MASK_KEEP {
         return b;
@@ -387,6 +403,7 @@ fn densities(n: u32, t: f32) -> f32 {
             let info = layers[k].info;
             let f = fields[info.x];
             let c = cell_of(f, lo_origin[k] + t * lo_dir[k]);
+            cells[k] = c;
             if c.inside {
                 s = activate(f, raw_density(f, c));
                 if s > 0.0 {
@@ -400,7 +417,7 @@ fn densities(n: u32, t: f32) -> f32 {
     return sum;
 }
 
-// Density-weighted colour at t.
+// Density-weighted colour at t (after `densities` at the same t).
 fn shade(n: u32, t: f32, sum: f32) -> vec3<f32> {
     var col = vec3<f32>(0.0);
     for (var k = 0u; k < n; k++) {
@@ -410,8 +427,7 @@ fn shade(n: u32, t: f32, sum: f32) -> vec3<f32> {
         }
         let info = layers[k].info;
         let f = fields[info.x];
-        let c = cell_of(f, lo_origin[k] + t * lo_dir[k]);
-        var ck = color_at(f, c, normalize(lo_dir[k]));
+        var ck = color_at(f, cells[k], normalize(lo_dir[k]));
         if (info.w & LAYER_COLOR_EDIT) != 0u {
             ck = apply_edit(k, ck);
         }

@@ -9,8 +9,8 @@
 
 use super::model::{DenseGrid, Model};
 use super::optim::Moments;
-use super::vm::{VmAppearance, VmShape};
 use super::trainer::{OptState, StepStats, TrainConfig};
+use super::vm::{VmAppearance, VmShape};
 use crate::error::{write_atomic, Error, Result};
 use crate::field::geom::check_res;
 use crate::field::io::{check_format, parse, read_all, read_metadata, serialize, Tensors};
@@ -228,7 +228,12 @@ pub fn load(path: &Path) -> Result<Restored> {
     if let Some((shape, res)) = state.vm {
         let empty = VmAppearance::new(shape, res, 0).map_err(|e| bad(e.to_string()))?;
         let (gl, nl) = (empty.grid.len(), empty.net.len());
-        model.vm = Some(VmAppearance::from_parts(shape, res, t.f32("vm.grid", &[gl])?, t.f32("vm.net", &[nl])?)?);
+        model.vm = Some(VmAppearance::from_parts(
+            shape,
+            res,
+            t.f32("vm.grid", &[gl])?,
+            t.f32("vm.net", &[nl])?,
+        )?);
         opt.vm_grid = Moments {
             m: t.f32("m.vm.grid", &[gl])?,
             v: t.f32("v.vm.grid", &[gl])?,

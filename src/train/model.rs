@@ -13,11 +13,11 @@
 //! Pruned voxels hold [`PRUNED_RAW`] and never train; a sample whose eight
 //! corners are all pruned is skipped, which is exact up to σ ≈ 1e-13.
 
+use super::vm::VmAppearance;
 use crate::error::Result;
 use crate::field::geom::check_res;
 use crate::field::sh::SH_COEFFS;
 use crate::field::{Aabb, Activation, Appearance, ChannelGrid, DensityGrid, Features, Field, GridGeom};
-use super::vm::VmAppearance;
 use glam::Vec3;
 use half::f16;
 use rayon::prelude::*;

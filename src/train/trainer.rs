@@ -6,9 +6,9 @@
 use super::march::{backward, forward, GradBuf, MarchOpts, RayOut, Scratch};
 use super::model::{res_for, Model, PRUNED_RAW};
 use super::optim::{adam_step, add_tv, corrected_lr, dense_adam_step, merge_marks, AdamParams, Moments};
-use super::vm::{VmAppearance, VmShape};
 use super::rays::RaySet;
 use super::teacher::FeatureMaps;
+use super::vm::{VmAppearance, VmShape};
 use crate::camera::Ray;
 use crate::field::{Aabb, GridGeom};
 use crate::util::SplitMix64;

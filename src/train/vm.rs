@@ -143,7 +143,7 @@ impl VmAppearance {
     pub fn new(shape: VmShape, res: [usize; 3], seed: u64) -> Result<VmAppearance> {
         shape.validate()?;
         crate::field::geom::check_res(res, "VM appearance grid")?;
-        let mut rng = SplitMix64::new(seed ^ 0x5EED_0F_7E45);
+        let mut rng = SplitMix64::new(seed ^ 0x005E_ED0F_7E45);
         let mut u = move || 2.0 * rng.unit() as f32 - 1.0;
         let (_, _, glen) = grid_offsets(&shape, res);
         // Uniform with the variance of 0.1·N(0, 1).
@@ -232,7 +232,15 @@ impl VmAppearance {
 
     /// Accumulates the gradients of a shaded sample, given dL/dz (the
     /// pre-sigmoid RGB), into `dgrid` / `dnet`. `tmp` is scratch.
-    pub fn backward(&self, g: Vec3, row: &[f32], dz: [f32; 3], dgrid: &mut [f32], dnet: &mut [f32], tmp: &mut Vec<f32>) {
+    pub fn backward(
+        &self,
+        g: Vec3,
+        row: &[f32],
+        dz: [f32; 3],
+        dgrid: &mut [f32],
+        dnet: &mut [f32],
+        tmp: &mut Vec<f32>,
+    ) {
         let sh = &self.shape;
         let (nc, no, ni, nh) = (sh.comps(), sh.out, sh.inputs(), sh.hidden);
         let o = sh.net_offsets();

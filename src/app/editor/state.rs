@@ -39,19 +39,30 @@ pub struct TransformDrag {
     pub gizmo: bool,
 }
 
-/// The move gizmo of the selected object in window coordinates (logical
-/// pixels), recomputed every frame; drawn by the UI, picked by
+/// One handle of the gizmo: a move arrow or a rotation ring of a world
+/// axis (index into `Vec3::AXES`), or the uniform scale circle (no axis).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Handle {
+    pub mode: TransformMode,
+    pub axis: Option<usize>,
+}
+
+/// The transform gizmo of the selected object in window coordinates
+/// (logical pixels), recomputed every frame; drawn by the UI, picked by
 /// [`super::tools::transform_modes`].
-#[derive(Resource, Default, Clone, Copy, Debug)]
+#[derive(Resource, Default, Clone, Debug)]
 pub struct GizmoView {
     pub center: Option<Vec2>,
     /// Arrow tips of the world X, Y, Z axes (`None`: the axis points at the
     /// camera and cannot be dragged).
     pub tips: [Option<Vec2>; 3],
-    /// The arrow under the cursor.
-    pub hovered: Option<usize>,
-    /// The arrow being dragged.
-    pub active: Option<usize>,
+    /// Rotation rings about X, Y, Z as closed screen polylines (empty where
+    /// the ring is edge-on and cannot be dragged).
+    pub rings: [Vec<Vec2>; 3],
+    /// The handle under the cursor.
+    pub hovered: Option<Handle>,
+    /// The handle being dragged.
+    pub active: Option<Handle>,
 }
 
 #[derive(Resource)]

@@ -5,7 +5,7 @@
 
 use super::camera::EditorCamera;
 use super::session::EditorSession;
-use super::state::{CurrentStroke, EditorState, GizmoView, StrokeMsg, Tool, TransformDrag, TransformMode};
+use super::state::{CurrentStroke, EditorState, GizmoView, Handle, StrokeMsg, Tool, TransformDrag, TransformMode};
 use crate::app::convert::camera_from_bevy;
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
 use crate::command::{Command, TransformSpec};
@@ -152,6 +152,103 @@ pub fn pick_arrow(center: Vec2, tips: &[Option<Vec2>; 3], cursor: Vec2) -> Optio
         .map(|(i, _)| i)
 }
 
+/// Screen radius of the rotation rings and of the uniform scale circle
+/// (logical pixels).
+pub const GIZMO_RING: f32 = 0.7 * GIZMO_ARROW;
+pub const GIZMO_SCALE: f32 = GIZMO_ARROW + 24.0;
+/// Points per ring polyline.
+const RING_POINTS: usize = 48;
+
+/// Screen polylines of the rings about the world axes through `center`,
+/// `radius` world units wide; empty for a ring seen (nearly) edge-on, whose
+/// plane the cursor ray cannot meet reliably, or one crossing behind the
+/// camera.
+pub fn gizmo_rings(to_screen: impl Fn(Vec3) -> Option<Vec2>, center: Vec3, radius: f32) -> [Vec<Vec2>; 3] {
+    Vec3::AXES.map(|axis| {
+        let (u, v) = axis.any_orthonormal_pair();
+        let pts: Option<Vec<Vec2>> = (0..RING_POINTS)
+            .map(|k| {
+                let a = std::f32::consts::TAU * k as f32 / RING_POINTS as f32;
+                to_screen(center + radius * (u * a.cos() + v * a.sin()))
+            })
+            .collect();
+        let Some(pts) = pts else { return vec![] };
+        // Shoelace area against the circle through the farthest point.
+        let area = 0.5
+            * pts
+                .iter()
+                .zip(pts.iter().cycle().skip(1))
+                .map(|(p, q)| p.perp_dot(*q))
+                .sum::<f32>()
+                .abs();
+        let c = pts.iter().copied().sum::<Vec2>() / pts.len() as f32;
+        let r = pts.iter().map(|p| p.distance(c)).fold(0.0, f32::max);
+        if area < 0.15 * std::f32::consts::PI * r * r {
+            return vec![];
+        }
+        pts
+    })
+}
+
+/// Distance from `p` to the closed polyline `pts`.
+fn polyline_distance(pts: &[Vec2], p: Vec2) -> f32 {
+    pts.iter()
+        .zip(pts.iter().cycle().skip(1))
+        .map(|(&a, &b)| {
+            let seg = b - a;
+            let t = ((p - a).dot(seg) / seg.length_squared().max(1e-9)).clamp(0.0, 1.0);
+            (a + t * seg).distance(p)
+        })
+        .fold(f32::INFINITY, f32::min)
+}
+
+/// The handle under `cursor`: an arrow first, then the nearest ring, then
+/// the scale circle.
+pub fn pick_handle(view: &GizmoView, cursor: Vec2) -> Option<Handle> {
+    let center = view.center?;
+    if let Some(i) = pick_arrow(center, &view.tips, cursor) {
+        return Some(Handle {
+            mode: TransformMode::Move,
+            axis: Some(i),
+        });
+    }
+    let ring = (0..3)
+        .filter(|&i| !view.rings[i].is_empty())
+        .map(|i| (i, polyline_distance(&view.rings[i], cursor)))
+        .filter(|&(_, d)| d <= GIZMO_PICK)
+        .min_by(|a, b| a.1.total_cmp(&b.1));
+    if let Some((i, _)) = ring {
+        return Some(Handle {
+            mode: TransformMode::Rotate,
+            axis: Some(i),
+        });
+    }
+    ((cursor.distance(center) - GIZMO_SCALE).abs() <= GIZMO_PICK).then_some(Handle {
+        mode: TransformMode::Scale,
+        axis: None,
+    })
+}
+
+/// Rotation angle (radians, right-handed about `axis`) that carries the
+/// point where ray 0 meets the plane through `center` perpendicular to
+/// `axis` onto the point where ray 1 meets it: the ring follows the cursor.
+/// `None` when a ray misses the plane or meets it at the centre.
+pub fn ring_angle(center: Vec3, axis: Vec3, r0: (Vec3, Vec3), r1: (Vec3, Vec3)) -> Option<f32> {
+    let hit = |(o, d): (Vec3, Vec3)| {
+        let den = d.dot(axis);
+        let t = (center - o).dot(axis) / den;
+        (den.abs() > 1e-4 && t > 0.0).then(|| o + d * t - center)
+    };
+    let (a, b) = (hit(r0)?, hit(r1)?);
+    (a.length() > 1e-6 && b.length() > 1e-6).then(|| axis.dot(a.cross(b)).atan2(a.dot(b)))
+}
+
+/// Uniform scale of a drag on the scale circle: the ratio of the cursor's
+/// distances from the centre, kept within [0.01, 100].
+pub fn scale_factor(center: Vec2, cursor0: Vec2, cursor: Vec2) -> f32 {
+    (cursor.distance(center) / cursor0.distance(center).max(1.0)).clamp(0.01, 100.0)
+}
+
 /// Parameter s of the point on the line `center + s·axis` closest to the
 /// ray `(origin, dir)`; `None` when they are (nearly) parallel.
 pub fn closest_on_axis(center: Vec3, axis: Vec3, origin: Vec3, dir: Vec3) -> Option<f32> {
@@ -173,7 +270,10 @@ pub fn gizmo(
     objects: Query<(&ObjectLayer, &Transform), Without<FieldLayer>>,
     fields: Query<(&FieldLayer, &Transform), Without<ObjectLayer>>,
 ) {
-    let active = state.transform.filter(|d| d.gizmo).and_then(|d| d.axis);
+    let active = state.transform.filter(|d| d.gizmo).map(|d| Handle {
+        mode: d.mode,
+        axis: d.axis,
+    });
     *view = GizmoView {
         active,
         ..Default::default()
@@ -192,14 +292,27 @@ pub fn gizmo(
     let center = object_center(obj, t, field, field_t);
     // World length of the arrows: their screen size at the object's depth.
     let scale = 0.25 * (center - cam_t.translation()).length().max(1e-3);
-    let Some((c, tips)) = gizmo_arrows(|p| cam.world_to_viewport(cam_t, p).ok(), center, scale) else {
+    let to_screen = |p| cam.world_to_viewport(cam_t, p).ok();
+    let Some((c, tips)) = gizmo_arrows(to_screen, center, scale) else {
         return;
+    };
+    // Ring radius in world units that shows as `GIZMO_RING` pixels: the
+    // screen length of the most face-on axis gives pixels per world unit.
+    let px_per_unit = Vec3::AXES
+        .iter()
+        .filter_map(|a| Some((to_screen(center + *a * scale)? - c).length() / scale))
+        .fold(0.0, f32::max);
+    let rings = if px_per_unit > 0.0 {
+        gizmo_rings(to_screen, center, GIZMO_RING / px_per_unit)
+    } else {
+        Default::default()
     };
     let origin = cam.logical_viewport_rect().map_or(Vec2::ZERO, |r| r.min);
     view.center = Some(c + origin);
     view.tips = tips.map(|t| t.map(|t| t + origin));
+    view.rings = rings.map(|r| r.into_iter().map(|p| p + origin).collect());
     if let Some(cursor) = windows.single().ok().and_then(|w| w.cursor_position()) {
-        view.hovered = pick_arrow(c + origin, &view.tips, cursor);
+        view.hovered = pick_handle(&view, cursor);
     }
 }
 
@@ -223,13 +336,13 @@ pub fn transform_modes(
     let Ok(window) = windows.single() else { return };
     let Some(cursor) = window.cursor_position() else { return };
     if state.transform.is_none() {
-        // A press on a gizmo arrow starts an axis move; else G / R / S.
+        // A press on a gizmo handle starts its drag; else G / R / S.
         let egui_pointer = wants.as_ref().is_some_and(|w| w.wants_pointer_input());
-        let arrow = gizmo
+        let handle = gizmo
             .hovered
             .filter(|_| buttons.just_pressed(MouseButton::Left) && !egui_pointer);
-        let mode = if arrow.is_some() {
-            TransformMode::Move
+        let mode = if let Some(h) = handle {
+            h.mode
         } else if typing || state.fly || keys.any_pressed([KeyCode::ControlLeft, KeyCode::ControlRight]) {
             return;
         } else if keys.just_pressed(KeyCode::KeyG) {
@@ -251,18 +364,27 @@ pub fn transform_modes(
             entity,
             start: *t,
             cursor0: cursor,
-            axis: arrow,
-            gizmo: arrow.is_some(),
+            axis: handle.and_then(|h| h.axis),
+            gizmo: handle.is_some(),
         });
-        state.status = match arrow {
-            Some(i) => format!("moving along {}: release to place, Esc cancels", AXIS_NAMES[i]),
-            None => format!("{mode:?}: move the mouse, click or Enter confirms, Esc cancels"),
+        state.status = match handle {
+            Some(Handle { mode, axis: Some(i) }) => {
+                let verb = if mode == TransformMode::Move {
+                    "moving along"
+                } else {
+                    "rotating about"
+                };
+                format!("{verb} {}: release to place, Esc cancels", AXIS_NAMES[i])
+            }
+            Some(_) => "scaling: release to place, Esc cancels".into(),
+            None => format!("{mode:?}: move the mouse (X / Y / Z: world axis), click or Enter confirms, Esc cancels"),
         };
         return;
     }
     let Some(mut drag) = state.transform else { return };
-    // X / Y / Z lock a keyboard move to a world axis (again: unlock).
-    if drag.mode == TransformMode::Move && !drag.gizmo {
+    // X / Y / Z lock a keyboard move, rotation or scale to a world axis
+    // (again: unlock).
+    if !drag.gizmo {
         for (a, k) in [KeyCode::KeyX, KeyCode::KeyY, KeyCode::KeyZ].into_iter().enumerate() {
             if keys.just_pressed(k) {
                 drag.axis = if drag.axis == Some(a) { None } else { Some(a) };
@@ -298,38 +420,52 @@ pub fn transform_modes(
     }
     let Ok((cam, cam_t)) = cams.single() else { return };
     let center = object_center(obj, &drag.start, field, field_t);
-    let d = cursor - drag.cursor0;
+    let origin = cam.logical_viewport_rect().map_or(Vec2::ZERO, |r| r.min);
+    let ray = |p: Vec2| {
+        cam.viewport_to_world(cam_t, p - origin)
+            .ok()
+            .map(|r| (r.origin, r.direction.as_vec3()))
+    };
+    let (Some(r0), Some(r1)) = (ray(drag.cursor0), ray(cursor)) else {
+        return;
+    };
     let fwd = cam_t.forward().as_vec3();
+    let axis = drag.axis.map(|i| Vec3::AXES[i]);
+    let about_center = |m: Mat4| Mat4::from_translation(center) * m * Mat4::from_translation(-center);
     let w = match drag.mode {
         TransformMode::Move => {
-            let origin = cam.logical_viewport_rect().map_or(Vec2::ZERO, |r| r.min);
-            let (Ok(a), Ok(b)) = (
-                cam.viewport_to_world(cam_t, drag.cursor0 - origin),
-                cam.viewport_to_world(cam_t, cursor - origin),
-            ) else {
-                return;
-            };
-            if let Some(axis) = drag.axis.map(|i| Vec3::AXES[i]) {
+            if let Some(axis) = axis {
                 // Along the axis: between the points of the axis line
                 // nearest to the two cursor rays.
-                let s = |r: Ray3d| closest_on_axis(center, axis, r.origin, r.direction.as_vec3());
-                let (Some(sa), Some(sb)) = (s(a), s(b)) else { return };
-                *t = Transform::from_matrix(Mat4::from_translation(axis * (sb - sa)) * drag.start.to_matrix());
-                return;
+                let s = |r: (Vec3, Vec3)| closest_on_axis(center, axis, r.0, r.1);
+                let (Some(sa), Some(sb)) = (s(r0), s(r1)) else { return };
+                Mat4::from_translation(axis * (sb - sa))
+            } else {
+                // Free: the cursor delta at the object's depth, in the view plane.
+                let depth = (center - cam_t.translation()).dot(fwd);
+                let at_depth = |r: (Vec3, Vec3)| r.0 + r.1 * (depth / r.1.dot(fwd));
+                Mat4::from_translation(at_depth(r1) - at_depth(r0))
             }
-            // Free: the cursor delta at the object's depth, in the view plane.
-            let depth = (center - cam_t.translation()).dot(fwd);
-            let pa = a.origin + a.direction * (depth / a.direction.dot(fwd));
-            let pb = b.origin + b.direction * (depth / b.direction.dot(fwd));
-            Mat4::from_translation(pb - pa)
         }
         TransformMode::Rotate => {
-            let r = Mat4::from_axis_angle(fwd, -d.x * 0.01);
-            Mat4::from_translation(center) * r * Mat4::from_translation(-center)
+            let angle = match axis {
+                // The ring follows the cursor.
+                Some(a) => ring_angle(center, a, r0, r1).unwrap_or(0.0),
+                None => -(cursor - drag.cursor0).x * 0.01,
+            };
+            about_center(Mat4::from_axis_angle(axis.unwrap_or(fwd), angle))
         }
         TransformMode::Scale => {
-            let s = (d.x * 0.005).exp();
-            Mat4::from_translation(center) * Mat4::from_scale(Vec3::splat(s)) * Mat4::from_translation(-center)
+            let s = if drag.gizmo {
+                let c = cam
+                    .world_to_viewport(cam_t, center)
+                    .map_or(drag.cursor0, |c| c + origin);
+                scale_factor(c, drag.cursor0, cursor)
+            } else {
+                ((cursor - drag.cursor0).x * 0.005).exp()
+            };
+            let v = axis.map_or(Vec3::splat(s), |a| Vec3::ONE + (s - 1.0) * a);
+            about_center(Mat4::from_scale(v))
         }
     };
     *t = Transform::from_matrix(w * drag.start.to_matrix());
@@ -421,5 +557,70 @@ mod tests {
         assert_eq!(pick_arrow(c, &tips, Vec2::new(402.0, 298.0)), None);
         // Behind the camera: no gizmo.
         assert!(gizmo_arrows(project, Vec3::new(0.0, 0.0, 4.0), 1.0).is_none());
+    }
+
+    /// A pinhole at the origin looking down -z, 500 px focal, 800×600.
+    fn pinhole(p: Vec3) -> Option<Vec2> {
+        (p.z < 0.0).then(|| Vec2::new(400.0 + 500.0 * p.x / -p.z, 300.0 - 500.0 * p.y / -p.z))
+    }
+
+    #[test]
+    fn rings_are_picked_and_edge_on_rings_dropped() {
+        let center = Vec3::new(0.0, 0.0, -4.0);
+        let rings = gizmo_rings(pinhole, center, 0.5);
+        // Looking down -z: the ring about z faces the camera (a circle of
+        // 500·0.5/4 = 62.5 px); those about x and y are edge-on.
+        assert!(rings[0].is_empty() && rings[1].is_empty());
+        let r = rings[2].iter().map(|p| p.distance(Vec2::new(400.0, 300.0)));
+        assert!(r.clone().all(|d| (d - 62.5).abs() < 0.5));
+        let (c, tips) = gizmo_arrows(pinhole, center, 1.0).unwrap();
+        let view = GizmoView {
+            center: Some(c),
+            tips,
+            rings,
+            ..Default::default()
+        };
+        let rotate_z = Handle {
+            mode: TransformMode::Rotate,
+            axis: Some(2),
+        };
+        // On the ring, off the arrows (45° between x and y).
+        let on_ring = c + Vec2::new(1.0, -1.0).normalize() * 62.0;
+        assert_eq!(pick_handle(&view, on_ring), Some(rotate_z));
+        // Where the ring crosses the x arrow, the arrow wins.
+        assert_eq!(
+            pick_handle(&view, c + Vec2::new(62.5, 0.0)).map(|h| h.mode),
+            Some(TransformMode::Move)
+        );
+        // The scale circle, and empty space between ring and circle.
+        let scale = pick_handle(&view, c + Vec2::new(0.0, GIZMO_SCALE + 3.0)).unwrap();
+        assert_eq!((scale.mode, scale.axis), (TransformMode::Scale, None));
+        assert_eq!(pick_handle(&view, c + Vec2::new(-75.0, 0.0)), None);
+    }
+
+    #[test]
+    fn dragging_a_ring_rotates_by_the_angle_the_cursor_sweeps() {
+        // Rays from a camera at (0, 0, 5) towards points of the plane z = 0:
+        // from +x to +y is a quarter turn counter-clockwise about +z.
+        let eye = Vec3::new(0.0, 0.0, 5.0);
+        let ray = |p: Vec3| (eye, (p - eye).normalize());
+        let a = ring_angle(Vec3::ZERO, Vec3::Z, ray(Vec3::X), ray(Vec3::Y)).unwrap();
+        assert!((a - std::f32::consts::FRAC_PI_2).abs() < 1e-5, "{a}");
+        let b = ring_angle(Vec3::ZERO, Vec3::Z, ray(Vec3::Y), ray(Vec3::X)).unwrap();
+        assert!((b + std::f32::consts::FRAC_PI_2).abs() < 1e-5, "{b}");
+        // Rotating the start point by the angle lands on the end point.
+        let (p0, p1) = (Vec3::new(0.3, 0.1, 0.0), Vec3::new(-0.2, 0.25, 0.0));
+        let c = ring_angle(Vec3::ZERO, Vec3::Z, ray(p0), ray(p1)).unwrap();
+        let q = Quat::from_axis_angle(Vec3::Z, c) * p0;
+        assert!(q.normalize().abs_diff_eq(p1.normalize(), 1e-5), "{q} vs {p1}");
+        // A ray parallel to the plane has no angle.
+        assert!(ring_angle(Vec3::ZERO, Vec3::Z, (eye, Vec3::X), ray(Vec3::Y)).is_none());
+    }
+
+    #[test]
+    fn the_scale_circle_scales_by_the_distance_ratio() {
+        let c = Vec2::new(100.0, 100.0);
+        assert!((scale_factor(c, c + Vec2::new(50.0, 0.0), c + Vec2::new(0.0, 75.0)) - 1.5).abs() < 1e-6);
+        assert_eq!(scale_factor(c, c + Vec2::X * 50.0, c), 0.01);
     }
 }

@@ -9,8 +9,8 @@
 
 use super::camera::{snap_to, EditorCamera};
 use super::session::{EditorSession, Request};
-use super::state::{CurrentStroke, EditorState, GizmoView, Tool};
-use super::tools::transform_command;
+use super::state::{CurrentStroke, EditorState, GizmoView, Handle, Tool, TransformMode};
+use super::tools::{self, transform_command};
 use crate::app::convert::{bevy_transform, to_bevy_vec3};
 use crate::app::gpu::SharedStatus;
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
@@ -679,18 +679,37 @@ fn draw_gizmo(ctx: &egui::Context, g: &GizmoView) {
         egui::Color32::from_rgb(90, 200, 90),
         egui::Color32::from_rgb(80, 130, 240),
     ];
+    let hot = |mode, axis| {
+        let h = Some(Handle { mode, axis });
+        g.hovered == h || g.active == h
+    };
+    let style = |hot: bool, color: egui::Color32| {
+        if hot {
+            (4.0, color.linear_multiply(1.3))
+        } else {
+            (2.0, color.gamma_multiply(0.8))
+        }
+    };
     let c = egui::pos2(c.x, c.y);
+    let pos = |p: &Vec2| egui::pos2(p.x, p.y);
+    let (w, col) = style(hot(TransformMode::Scale, None), egui::Color32::from_gray(220));
+    painter.circle_stroke(c, tools::GIZMO_SCALE, egui::Stroke::new(w - 0.5, col));
+    for (i, ring) in g.rings.iter().enumerate() {
+        if ring.is_empty() {
+            continue;
+        }
+        let (w, col) = style(hot(TransformMode::Rotate, Some(i)), colors[i]);
+        painter.add(egui::Shape::closed_line(
+            ring.iter().map(pos).collect(),
+            egui::Stroke::new(w - 0.5, col),
+        ));
+    }
     for (i, tip) in g.tips.iter().enumerate() {
         let Some(tip) = tip else { continue };
-        let hot = g.hovered == Some(i) || g.active == Some(i);
-        let (width, color) = if hot {
-            (4.0, colors[i].linear_multiply(1.3))
-        } else {
-            (2.5, colors[i].gamma_multiply(0.85))
-        };
-        let tip = egui::pos2(tip.x, tip.y);
-        painter.line_segment([c, tip], egui::Stroke::new(width, color));
-        painter.circle_filled(tip, if hot { 6.5 } else { 5.0 }, color);
+        let h = hot(TransformMode::Move, Some(i));
+        let (w, col) = style(h, colors[i]);
+        painter.line_segment([c, pos(tip)], egui::Stroke::new(w + 0.5, col));
+        painter.circle_filled(pos(tip), if h { 6.5 } else { 5.0 }, col);
     }
     painter.circle_filled(c, 3.5, egui::Color32::WHITE);
 }
