@@ -31,3 +31,45 @@ impl SplitMix64 {
 pub fn ms_since(t: std::time::Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
+
+/// How far a long operation has come, shared between the thread doing it
+/// and a UI showing it (the editor's progress bar). Cheap to clone; setting
+/// it takes a short lock, so callers report per frame, stroke or step, not
+/// per voxel.
+#[derive(Clone, Debug, Default)]
+pub struct Progress(std::sync::Arc<std::sync::Mutex<Option<ProgressState>>>);
+
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ProgressState {
+    pub stage: String,
+    pub done: u64,
+    /// 0 when the amount of work is not known in advance.
+    pub total: u64,
+}
+
+impl ProgressState {
+    /// Share done in [0, 1], when the total is known.
+    pub fn fraction(&self) -> Option<f32> {
+        (self.total > 0).then(|| (self.done as f64 / self.total as f64).min(1.0) as f32)
+    }
+}
+
+impl Progress {
+    pub fn set(&self, stage: &str, done: u64, total: u64) {
+        if let Ok(mut s) = self.0.lock() {
+            *s = Some(ProgressState {
+                stage: stage.to_string(),
+                done,
+                total,
+            });
+        }
+    }
+    pub fn clear(&self) {
+        if let Ok(mut s) = self.0.lock() {
+            *s = None;
+        }
+    }
+    pub fn get(&self) -> Option<ProgressState> {
+        self.0.lock().ok().and_then(|s| s.clone())
+    }
+}

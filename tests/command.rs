@@ -468,3 +468,55 @@ fn compositions_round_trip_and_report_changed_files() {
     let e = composition::load(&doc, dir.path()).unwrap_err().to_string();
     assert!(e.contains("field 'shelf'") && e.contains("missing"), "{e}");
 }
+
+/// A frame renderer that records the session's progress at every frame.
+struct ProgressProbe {
+    progress: isrf::util::Progress,
+    seen: Vec<(String, u64, u64)>,
+}
+
+impl isrf::command::FrameRenderer for ProgressProbe {
+    fn render_rgb(&mut self, _scene: std::sync::Arc<isrf::render::Scene>, camera: &Camera) -> isrf::Result<Vec<Vec3>> {
+        let p = self.progress.get().expect("progress is set while rendering");
+        self.seen.push((p.stage, p.done, p.total));
+        Ok(vec![
+            Vec3::splat(0.5);
+            camera.intrinsics.width as usize * camera.intrinsics.height as usize
+        ])
+    }
+}
+
+#[test]
+fn commands_report_progress_and_clear_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut s = Session::new(dir.path(), dir.path());
+    s.apply(&demo("room", "tabletop")).unwrap();
+    assert!(s.progress.get().is_none(), "cleared once the command returns");
+    let render = Command::Render {
+        cameras: CameraSource::Orbit {
+            center: [0.0, -0.2, 0.0],
+            radius: 2.0,
+            elevation_deg: 25.0,
+            frames: 3,
+            width: 8,
+            height: 6,
+            fov_deg: 50.0,
+        },
+        out: "frames".into(),
+        downscale: 1,
+        frames: None,
+        depth: false,
+        background: None,
+    };
+    let mut probe = ProgressProbe {
+        progress: s.progress.clone(),
+        seen: vec![],
+    };
+    s.apply_with(&render, Some(&mut probe)).unwrap();
+    let want: Vec<(String, u64, u64)> = (0..3).map(|i| ("rendering".to_string(), i, 3)).collect();
+    assert_eq!(probe.seen, want);
+    assert!(s.progress.get().is_none());
+    // A failing command clears it too.
+    assert!(s.apply(&stroke("x", "nope", "pot")).is_err());
+    assert!(s.progress.get().is_none());
+}

@@ -13,6 +13,7 @@ use crate::segment::{
     apply_region, load_strokes, region_from_stroke, scribble_stroke, Grower, Growth, Polarity, SegmentParams, Stroke,
     Timings, MAX_GROW_STEPS,
 };
+use crate::util::Progress;
 use crate::{ensure, Result as R};
 use glam::{Affine3A, Vec2, Vec3};
 use std::path::{Path, PathBuf};
@@ -83,6 +84,9 @@ pub struct Session {
     pub base_dir: PathBuf,
     /// Relative output paths (renders, exports) resolve against this.
     pub out_dir: PathBuf,
+    /// What the command being applied has done so far (frames rendered,
+    /// strokes segmented, growth steps); cleared when it returns.
+    pub progress: Progress,
 }
 
 impl Default for Session {
@@ -102,6 +106,7 @@ impl Session {
             redo: vec![],
             base_dir: base_dir.into(),
             out_dir: out_dir.into(),
+            progress: Progress::default(),
         }
     }
 
@@ -138,6 +143,12 @@ impl Session {
     /// [`Session::apply`], with colour frames of `Render` commands drawn by
     /// `renderer` (e.g. the GPU ray marcher) instead of the CPU renderer.
     pub fn apply_with(&mut self, cmd: &Command, renderer: Option<&mut dyn FrameRenderer>) -> Result<StepOutput> {
+        let out = self.apply_inner(cmd, renderer);
+        self.progress.clear();
+        out
+    }
+
+    fn apply_inner(&mut self, cmd: &Command, renderer: Option<&mut dyn FrameRenderer>) -> Result<StepOutput> {
         if !cmd.is_edit() {
             return self.output(cmd, renderer);
         }
@@ -189,6 +200,7 @@ impl Session {
                 transform,
             } => {
                 check_new_name(st, name)?;
+                self.progress.set(&format!("loading '{name}'"), 0, 0);
                 let (field, demo) = self.load_source(source)?;
                 let pivot = field.bounds().center();
                 let t = match transform {
@@ -229,10 +241,23 @@ impl Session {
                 let cache = f.field.feature_cache()?;
                 let mut mask = (*o.mask).clone();
                 let mut g = Grower::new(&cache, st.params.grow);
-                let n = match steps {
-                    Growth::Steps(n) => (0..*n).take_while(|_| g.step(&mut mask) > 0).count(),
-                    Growth::Converge => g.converge(&mut mask, MAX_GROW_STEPS),
+                let (limit, total) = match steps {
+                    Growth::Steps(n) => (*n, *n as u64),
+                    Growth::Converge => (MAX_GROW_STEPS, 0),
                 };
+                // Steps run; like `Grower::converge`, convergence counts the
+                // final step that adds nothing.
+                let mut n = 0;
+                while n < limit {
+                    self.progress.set(&format!("growing '{object}'"), n as u64, total);
+                    let added = g.step(&mut mask);
+                    if added > 0 || total == 0 {
+                        n += 1;
+                    }
+                    if added == 0 {
+                        break;
+                    }
+                }
                 out.message = format!("'{object}': {} -> {} voxels in {n} steps", o.mask.count(), mask.count());
                 find_object_mut(st, object)?.mask = Arc::new(mask);
             }
@@ -390,6 +415,7 @@ impl Session {
         }
         let f = find_field(st, &field_name)?.clone();
         let strokes = self.strokes_of(&f, object, source)?;
+        self.progress.set("per-voxel features", 0, 0);
         let cache = f.field.feature_cache()?;
         // Stroke features come from the field as it stands in the world.
         let scene = Scene::new(vec![Layer {
@@ -400,7 +426,9 @@ impl Session {
             .as_ref()
             .map_or_else(|| Bitmap::new(f.field.res()), |o| (*o.mask).clone());
         let mut total = Timings::default();
-        for s in &strokes {
+        for (i, s) in strokes.iter().enumerate() {
+            self.progress
+                .set(&format!("segmenting '{object}'"), i as u64, strokes.len() as u64);
             let pol = polarity.unwrap_or(s.polarity);
             if existing.is_none() && pol == Polarity::Negative && !mask.any() {
                 return Err(Error::invalid(format!(
@@ -493,7 +521,8 @@ impl Session {
                     Some(g) if !*depth => Some((g, Arc::new(scene.clone()))),
                     _ => None,
                 };
-                for fr in &cams.frames {
+                for (i, fr) in cams.frames.iter().enumerate() {
+                    self.progress.set("rendering", i as u64, cams.frames.len() as u64);
                     let cam = fr.camera.downscaled(*downscale);
                     let p = dir.join(format!("{}.png", fr.base_name()));
                     if let Some((g, shared)) = gpu.as_mut() {
@@ -546,7 +575,8 @@ impl Session {
                     ..Default::default()
                 };
                 let dir = self.output_path(dir);
-                for fr in &cams.frames {
+                for (i, fr) in cams.frames.iter().enumerate() {
+                    self.progress.set("exporting masks", i as u64, cams.frames.len() as u64);
                     let f = render(&scene, &fr.camera.downscaled(*downscale), &opts)?;
                     let m: Vec<u8> = f
                         .out
@@ -573,6 +603,7 @@ impl Session {
             }
             Export::Mesh { target, out: path, iso } => {
                 use crate::edit::mesh::{export_mesh, field_mesh, MeshOptions};
+                self.progress.set("extracting the mesh", 0, 0);
                 let mesh = if let Ok(f) = self.field(target) {
                     field_mesh(
                         &f.field,

@@ -11,6 +11,7 @@ use crate::app::layers::{FieldLayer, ObjectLayer, SessionName};
 use crate::command::composition;
 use crate::command::session::{State, StepOutput};
 use crate::command::{Command, Session};
+use crate::util::{Progress, ProgressState};
 use crate::Result;
 use bevy::prelude::*;
 use bevy::tasks::{futures::check_ready, AsyncComputeTaskPool, Task};
@@ -66,11 +67,14 @@ pub struct EditorSession {
     pub finished: u64,
     /// Command log of the session (for "save script").
     pub log_len: usize,
+    /// The session's progress handle (kept across `Open`).
+    progress: Progress,
 }
 
 impl EditorSession {
     pub fn new(session: Session) -> Self {
         EditorSession {
+            progress: session.progress.clone(),
             state: session.state.clone(),
             session: Some(session),
             version: 1,
@@ -91,10 +95,12 @@ impl EditorSession {
     pub fn busy(&self) -> bool {
         self.running.is_some() || !self.queue.is_empty()
     }
-    pub fn progress(&self) -> Option<(String, f32)> {
+    /// The running request: its label, seconds so far, and what the
+    /// command reported of its progress.
+    pub fn progress(&self) -> Option<(String, f32, Option<ProgressState>)> {
         self.running
             .as_ref()
-            .map(|r| (r.label.clone(), r.started.elapsed().as_secs_f32()))
+            .map(|r| (r.label.clone(), r.started.elapsed().as_secs_f32(), self.progress.get()))
     }
     /// The session, when no request holds it.
     pub fn session(&self) -> Option<&Session> {
@@ -129,7 +135,8 @@ fn run(mut session: Session, r: Request) -> Outcome {
         Request::Open(p) => {
             let out_dir = session.out_dir.clone();
             match composition::load(p, &out_dir) {
-                Ok(s) => {
+                Ok(mut s) => {
+                    s.progress = session.progress.clone();
                     session = s;
                     Ok(StepOutput {
                         message: format!("opened {}", p.display()),

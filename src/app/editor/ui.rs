@@ -623,8 +623,20 @@ fn status_line(
 ) {
     let gpu = status.get();
     ui.horizontal_wrapped(|ui| {
-        if let Some((label, secs)) = es.progress() {
-            ui.spinner();
+        if let Some((label, secs, p)) = es.progress() {
+            match p.as_ref().and_then(|p| Some((p, p.fraction()?))) {
+                Some((p, f)) => {
+                    let text = format!("{}: {} / {} ({:.0} %)", p.stage, p.done, p.total, 100.0 * f);
+                    ui.add(egui::ProgressBar::new(f).text(text).desired_width(260.0));
+                }
+                None => {
+                    ui.spinner();
+                    if let Some(p) = &p {
+                        let steps = if p.done > 0 { format!(", {}", p.done) } else { String::new() };
+                        ui.label(format!("{}{steps}", p.stage));
+                    }
+                }
+            }
             ui.label(format!("{label} ({secs:.1} s)"));
         }
         ui.label(&state.status);
