@@ -64,7 +64,13 @@ struct FieldInfo {
 @group(0) @binding(5) var<storage, read> density: array<f32>;
 @group(0) @binding(6) var<storage, read> colors: array<u32>;
 
+// Scenes of one layer get a pipeline with arrays of one element (which
+// lavapipe keeps in registers); src/app/gpu/pack.rs MAX_LAYERS otherwise.
+#ifdef ONE_LAYER
+const MAX_LAYERS: u32 = 1u;
+#else
 const MAX_LAYERS: u32 = 16u;
+#endif
 const MAX_ITERATIONS: u32 = 1000000u;
 const INF: f32 = 3.0e38;
 
