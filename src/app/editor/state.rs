@@ -63,6 +63,8 @@ pub struct GizmoView {
     pub hovered: Option<Handle>,
     /// The handle being dragged.
     pub active: Option<Handle>,
+    /// The 3D view's rectangle: the gizmo is clipped to it.
+    pub clip: Option<Rect>,
 }
 
 #[derive(Resource)]

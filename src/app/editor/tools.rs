@@ -307,10 +307,12 @@ pub fn gizmo(
     } else {
         Default::default()
     };
-    let origin = cam.logical_viewport_rect().map_or(Vec2::ZERO, |r| r.min);
-    view.center = Some(c + origin);
-    view.tips = tips.map(|t| t.map(|t| t + origin));
-    view.rings = rings.map(|r| r.into_iter().map(|p| p + origin).collect());
+    // bevy's viewport conversions work in window coordinates (the
+    // viewport's offset included), like the cursor.
+    view.center = Some(c);
+    view.clip = cam.logical_viewport_rect();
+    view.tips = tips;
+    view.rings = rings;
     if let Some(cursor) = windows.single().ok().and_then(|w| w.cursor_position()) {
         view.hovered = pick_handle(&view, cursor);
     }
@@ -420,9 +422,9 @@ pub fn transform_modes(
     }
     let Ok((cam, cam_t)) = cams.single() else { return };
     let center = object_center(obj, &drag.start, field, field_t);
-    let origin = cam.logical_viewport_rect().map_or(Vec2::ZERO, |r| r.min);
+    // Window coordinates, like the cursor (bevy includes the viewport offset).
     let ray = |p: Vec2| {
-        cam.viewport_to_world(cam_t, p - origin)
+        cam.viewport_to_world(cam_t, p)
             .ok()
             .map(|r| (r.origin, r.direction.as_vec3()))
     };
@@ -457,9 +459,7 @@ pub fn transform_modes(
         }
         TransformMode::Scale => {
             let s = if drag.gizmo {
-                let c = cam
-                    .world_to_viewport(cam_t, center)
-                    .map_or(drag.cursor0, |c| c + origin);
+                let c = cam.world_to_viewport(cam_t, center).unwrap_or(drag.cursor0);
                 scale_factor(c, drag.cursor0, cursor)
             } else {
                 ((cursor - drag.cursor0).x * 0.005).exp()

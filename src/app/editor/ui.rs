@@ -685,7 +685,13 @@ fn status_line(
 /// object's centre, brighter under the cursor or while dragged.
 fn draw_gizmo(ctx: &egui::Context, g: &GizmoView) {
     let Some(c) = g.center else { return };
-    let painter = ctx.layer_painter(egui::LayerId::new(egui::Order::Foreground, "isrf_gizmo".into()));
+    let mut painter = ctx.layer_painter(egui::LayerId::new(egui::Order::Foreground, "isrf_gizmo".into()));
+    if let Some(r) = g.clip {
+        painter = painter.with_clip_rect(egui::Rect::from_min_max(
+            egui::pos2(r.min.x, r.min.y),
+            egui::pos2(r.max.x, r.max.y),
+        ));
+    }
     let colors = [
         egui::Color32::from_rgb(230, 70, 70),
         egui::Color32::from_rgb(90, 200, 90),
