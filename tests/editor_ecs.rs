@@ -240,3 +240,130 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
     );
     assert_eq!(*objects(&mut app)[0].1, want, "undo of the move keeps the grown mask");
 }
+
+/// Pointer input as winit would deliver it: the cursor moves over a window
+/// whose 3D view is offset to the right (a side panel), the left button
+/// presses on a gizmo ring, drags a quarter of the way round and releases.
+#[test]
+fn a_mouse_drag_on_a_gizmo_ring_turns_the_object_about_that_axis() {
+    use bevy::camera::{ComputedCameraValues, RenderTargetInfo, Viewport};
+    use bevy::window::{PrimaryWindow, WindowResolution};
+    use isrf::app::editor::camera::EditorCamera;
+    use isrf::app::editor::state::{GizmoView, Handle, TransformMode};
+    use isrf::app::editor::tools::{gizmo, pick_handle, transform_modes};
+    use isrf::app::editor::EditorSystems;
+
+    let mut app = app();
+    app.init_resource::<ButtonInput<KeyCode>>()
+        .init_resource::<ButtonInput<MouseButton>>()
+        .add_systems(Update, (gizmo, transform_modes).chain().before(EditorSystems::Model));
+    let stroke = demo_stroke("mug");
+    app.world_mut().write_message(StrokeMsg {
+        camera: stroke.camera,
+        points: stroke.points.clone(),
+        radius: stroke.radius,
+        polarity: Polarity::Positive,
+    });
+    settle(&mut app);
+    let (name, _, selected) = objects(&mut app)[0].clone();
+    assert!(selected, "a new object is selected");
+
+    // An 800×600 window; the view is its right 600×600 (offset 200 px).
+    let window = app
+        .world_mut()
+        .spawn((
+            Window {
+                resolution: WindowResolution::new(800, 600),
+                ..default()
+            },
+            PrimaryWindow,
+        ))
+        .id();
+    let mut camera = Camera {
+        viewport: Some(Viewport {
+            physical_position: UVec2::new(200, 0),
+            physical_size: UVec2::new(600, 600),
+            ..default()
+        }),
+        ..default()
+    };
+    camera.computed = ComputedCameraValues {
+        clip_from_view: Mat4::perspective_infinite_reverse_rh(0.9, 1.0, 0.05),
+        target_info: Some(RenderTargetInfo {
+            physical_size: UVec2::new(800, 600),
+            scale_factor: 1.0,
+        }),
+        ..default()
+    };
+    let eye = Transform::from_xyz(0.6, 1.2, 2.2).looking_at(Vec3::new(0.0, -0.2, 0.0), Vec3::Y);
+    app.world_mut()
+        .spawn((camera, GlobalTransform::from(eye), EditorCamera));
+    let set_cursor = |app: &mut App, p: Vec2| {
+        app.world_mut()
+            .get_mut::<Window>(window)
+            .unwrap()
+            .set_cursor_position(Some(p));
+    };
+    set_cursor(&mut app, Vec2::new(10.0, 10.0));
+    app.update();
+    let view: GizmoView = app.world().resource::<GizmoView>().clone();
+    let centre = view.center.expect("the selected object shows a gizmo");
+    assert!(centre.x > 200.0, "the gizmo sits inside the view, right of the panel");
+    // A point of the ring about Y that picks that ring, and the point a
+    // quarter turn further round.
+    let ring = &view.rings[1];
+    assert_eq!(ring.len() % 4, 0);
+    let rotate_y = Some(Handle {
+        mode: TransformMode::Rotate,
+        axis: Some(1),
+    });
+    let k = (0..ring.len())
+        .find(|&k| {
+            pick_handle(&view, ring[k]) == rotate_y
+                && pick_handle(&view, ring[(k + ring.len() / 4) % ring.len()]) == rotate_y
+        })
+        .expect("the Y ring is visible and pickable");
+    let (p0, p1) = (ring[k], ring[(k + ring.len() / 4) % ring.len()]);
+
+    let entity = {
+        let mut q = app.world_mut().query::<(Entity, &SessionName)>();
+        q.iter(app.world()).find(|(_, n)| n.0 == name).unwrap().0
+    };
+    let start = *app.world().get::<Transform>(entity).unwrap();
+    set_cursor(&mut app, p0);
+    app.update();
+    assert_eq!(app.world().resource::<GizmoView>().hovered, rotate_y);
+    app.world_mut()
+        .resource_mut::<ButtonInput<MouseButton>>()
+        .press(MouseButton::Left);
+    app.update();
+    app.world_mut().resource_mut::<ButtonInput<MouseButton>>().clear();
+    set_cursor(&mut app, p1);
+    app.update();
+    let dragged = *app.world().get::<Transform>(entity).unwrap();
+    let (axis, angle) = (dragged.rotation * start.rotation.inverse()).to_axis_angle();
+    assert!(axis.cross(Vec3::Y).length() < 1e-3, "turned about Y, not {axis}");
+    assert!(
+        (angle - std::f32::consts::FRAC_PI_2).abs() < 0.02,
+        "a quarter turn, not {angle}"
+    );
+    // The turn is about the object's centre: the gizmo stays where it was.
+    app.update();
+    let c2 = app.world().resource::<GizmoView>().center.unwrap();
+    assert!(c2.distance(centre) < 0.5, "{c2} vs {centre}");
+
+    // Release: one Transform command, and the session agrees.
+    app.world_mut()
+        .resource_mut::<ButtonInput<MouseButton>>()
+        .release(MouseButton::Left);
+    app.update();
+    settle(&mut app);
+    let es = app.world().resource::<EditorSession>();
+    assert!(matches!(
+        es.session().unwrap().log().last(),
+        Some(Command::Transform { .. })
+    ));
+    let placed = isrf::app::convert::to_bevy_mat4(&es.state.objects[0].transform);
+    let shown = app.world().get::<Transform>(entity).unwrap().to_matrix();
+    assert!(placed.abs_diff_eq(shown, 1e-4), "{placed:?} vs {shown:?}");
+}
