@@ -58,6 +58,26 @@ fn max_diff(a: &[Vec3], b: &[Vec3]) -> f32 {
         .fold(0.0, f32::max)
 }
 
+/// Colour frames on an orbit around the tabletop, into `frames/`.
+fn orbit_render(frames: usize, width: u32, height: u32) -> Command {
+    Command::Render {
+        cameras: CameraSource::Orbit {
+            center: [0.0, -0.2, 0.0],
+            radius: 2.0,
+            elevation_deg: 25.0,
+            frames,
+            width,
+            height,
+            fov_deg: 50.0,
+        },
+        out: "frames".into(),
+        downscale: 1,
+        frames: None,
+        depth: false,
+        background: None,
+    }
+}
+
 fn tabletop_with_pot() -> Session {
     let mut s = Session::default();
     s.apply(&demo("room", "tabletop")).unwrap();
@@ -286,22 +306,7 @@ fn small_script() -> Script {
                     ..Default::default()
                 },
             },
-            Command::Render {
-                cameras: CameraSource::Orbit {
-                    center: [0.0, -0.2, 0.0],
-                    radius: 2.0,
-                    elevation_deg: 25.0,
-                    frames: 2,
-                    width: 48,
-                    height: 36,
-                    fov_deg: 50.0,
-                },
-                out: "frames".into(),
-                downscale: 1,
-                frames: None,
-                depth: false,
-                background: None,
-            },
+            orbit_render(2, 48, 36),
             Command::Export(Export::Masks {
                 object: "digger".into(),
                 cameras: CameraSource::Demo {
@@ -492,22 +497,7 @@ fn commands_report_progress_and_clear_it() {
     let mut s = Session::new(dir.path(), dir.path());
     s.apply(&demo("room", "tabletop")).unwrap();
     assert!(s.progress.get().is_none(), "cleared once the command returns");
-    let render = Command::Render {
-        cameras: CameraSource::Orbit {
-            center: [0.0, -0.2, 0.0],
-            radius: 2.0,
-            elevation_deg: 25.0,
-            frames: 3,
-            width: 8,
-            height: 6,
-            fov_deg: 50.0,
-        },
-        out: "frames".into(),
-        downscale: 1,
-        frames: None,
-        depth: false,
-        background: None,
-    };
+    let render = orbit_render(3, 8, 6);
     let mut probe = ProgressProbe {
         progress: s.progress.clone(),
         seen: vec![],

@@ -78,6 +78,19 @@ fn demo_stroke(object: &str) -> Stroke {
     }
 }
 
+/// A positive stroke on a demo object, sent as the brush sends it, and
+/// waited for.
+fn paint(app: &mut App, object: &str) {
+    let stroke = demo_stroke(object);
+    app.world_mut().write_message(StrokeMsg {
+        camera: stroke.camera,
+        points: stroke.points,
+        radius: stroke.radius,
+        polarity: Polarity::Positive,
+    });
+    settle(app);
+}
+
 #[test]
 fn strokes_through_the_ecs_equal_the_library_and_undo_redo_restore() {
     let mut app = app();
@@ -86,20 +99,14 @@ fn strokes_through_the_ecs_equal_the_library_and_undo_redo_restore() {
         1,
         "the demo field loads"
     );
-    let stroke = demo_stroke("mug");
-    app.world_mut().write_message(StrokeMsg {
-        camera: stroke.camera,
-        points: stroke.points.clone(),
-        radius: stroke.radius,
-        polarity: Polarity::Positive,
-    });
-    settle(&mut app);
+    paint(&mut app, "mug");
     let objs = objects(&mut app);
     assert_eq!(objs.len(), 1, "the stroke made one object");
     let (name, bitmap, selected) = objs[0].clone();
     assert!(selected, "the new object is selected");
 
     // The library's answer for the same stroke on the same field.
+    let stroke = demo_stroke("mug");
     let es = app.world().resource::<EditorSession>();
     let field = es.state.fields[0].field.clone();
     let scene = Scene::new(vec![Layer::new(field.clone())]);
@@ -168,14 +175,7 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
             tau: None,
             growth: Some(Growth::Steps(0)),
         });
-    let stroke = demo_stroke("mug");
-    app.world_mut().write_message(StrokeMsg {
-        camera: stroke.camera,
-        points: stroke.points.clone(),
-        radius: stroke.radius,
-        polarity: Polarity::Positive,
-    });
-    settle(&mut app);
+    paint(&mut app, "mug");
     let (name, before, _) = objects(&mut app)[0].clone();
 
     // Grow one step with the keyboard.
@@ -257,14 +257,7 @@ fn a_mouse_drag_on_a_gizmo_ring_turns_the_object_about_that_axis() {
     app.init_resource::<ButtonInput<KeyCode>>()
         .init_resource::<ButtonInput<MouseButton>>()
         .add_systems(Update, (gizmo, transform_modes).chain().before(EditorSystems::Model));
-    let stroke = demo_stroke("mug");
-    app.world_mut().write_message(StrokeMsg {
-        camera: stroke.camera,
-        points: stroke.points.clone(),
-        radius: stroke.radius,
-        polarity: Polarity::Positive,
-    });
-    settle(&mut app);
+    paint(&mut app, "mug");
     let (name, _, selected) = objects(&mut app)[0].clone();
     assert!(selected, "a new object is selected");
 
