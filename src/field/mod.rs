@@ -2,6 +2,7 @@
 //! semantic features over one world-space box, plus trilinear sampling and a
 //! cache of per-voxel features for occupied voxels.
 
+pub mod bake;
 pub mod bitmap;
 pub mod cache;
 pub mod geom;
@@ -58,6 +59,8 @@ pub struct Field {
     pub occupancy: Option<Arc<RankIndex>>,
     cache: OnceLock<Arc<FeatureCache>>,
     macro_grid: OnceLock<MacroGrid>,
+    /// This field with VM appearance baked into SH (GPU view), on first use.
+    baked: OnceLock<Arc<Field>>,
 }
 
 impl Clone for Field {
@@ -69,6 +72,7 @@ impl Clone for Field {
             occupancy: self.occupancy.clone(),
             cache: OnceLock::new(),
             macro_grid: OnceLock::new(),
+            baked: OnceLock::new(),
         }
     }
 }
@@ -87,6 +91,7 @@ impl Field {
             occupancy,
             cache: OnceLock::new(),
             macro_grid: OnceLock::new(),
+            baked: OnceLock::new(),
         }
     }
     pub fn bounds(&self) -> Aabb {
@@ -135,6 +140,20 @@ impl Field {
         }
         let c = Arc::new(FeatureCache::build(self)?);
         Ok(self.cache.get_or_init(|| c).clone())
+    }
+    /// The field as the GPU view draws it: VM + MLP appearance baked into
+    /// SH ([`bake::vm_to_sh`]), computed once and shared; `None` for other
+    /// appearances (drawn as they are). The editor computes it off the
+    /// frame loop after loading.
+    pub fn sh_baked(&self) -> crate::error::Result<Option<Arc<Field>>> {
+        if !matches!(self.appearance, Appearance::Vm { .. }) {
+            return Ok(None);
+        }
+        if let Some(b) = self.baked.get() {
+            return Ok(Some(b.clone()));
+        }
+        let b = Arc::new(bake::vm_to_sh(self)?);
+        Ok(Some(self.baked.get_or_init(|| b).clone()))
     }
     /// Coarse max-density grid for empty-space skipping, built on first use.
     pub fn macro_grid(&self) -> &MacroGrid {

@@ -147,6 +147,13 @@ fn run(mut session: Session, r: Request) -> Outcome {
             }
         }
     };
+    // The GPU view draws VM fields through an SH bake: make it here, off the
+    // frame loop, rather than in the render world's upload.
+    for f in &session.state.fields {
+        if let Err(e) = f.field.sh_baked() {
+            return (session, Err(e));
+        }
+    }
     (session, out)
 }
 

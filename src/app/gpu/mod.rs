@@ -205,7 +205,6 @@ impl SpecializedRenderPipeline for RayMarchPipeline {
                     blend: None,
                     write_mask: ColorWrites::ALL,
                 })],
-                ..default()
             }),
             depth_stencil: Some(DepthStencilState {
                 format: bevy::core_pipeline::core_3d::CORE_3D_DEPTH_FORMAT,

@@ -246,8 +246,8 @@ fn sh_colors(g: &ChannelGrid, n: usize) -> Result<(Vec<u32>, u32)> {
     Ok((out, start as u32))
 }
 
-/// Packs a field for upload: RGB or SH appearance (dense or sparse);
-/// VM + MLP appearance is rejected with a message naming it.
+/// Packs a field for upload: RGB or SH appearance (dense or sparse); VM +
+/// MLP appearance is baked into sparse SH first ([`crate::field::bake`]).
 pub fn pack_field(field: &Field) -> Result<PackedField> {
     let geom = field.geom();
     let n = geom.len();
@@ -260,11 +260,12 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
             let (c, start) = sh_colors(g, n)?;
             (c, sparse_bit(g) | COLOR_SH, start)
         }
-        Appearance::Vm { .. } => {
-            return Err(crate::Error::invalid(
-                "the GPU view does not render VM+MLP appearance yet (use the CPU renderer)",
-            ))
-        }
+        // The ray marcher has no MLP: the network is baked into SH once,
+        // when the field is first uploaded.
+        Appearance::Vm { .. } => match field.sh_baked()? {
+            Some(baked) => return pack_field(&baked),
+            None => unreachable!("a VM field has a bake"),
+        },
     };
     let (dims, skip) = skip_grid(&field.density);
     let aux: Vec<u32> = skip
