@@ -9,6 +9,7 @@
 //! Systems stay thin: they read components, queue commands or call library
 //! functions, and write components.
 
+pub mod browse;
 pub mod camera;
 pub mod capture;
 pub mod session;

@@ -7,6 +7,7 @@
 //! Widgets only read entities and write previews; every change the user
 //! commits becomes a [`Command`] queued on the session.
 
+use super::browse;
 use super::camera::{snap_to, EditorCamera};
 use super::session::{EditorSession, Request};
 use super::state::{CurrentStroke, EditorState, GizmoView, Handle, Tool, TransformMode};
@@ -190,6 +191,7 @@ fn menu_bar(
     ui.menu_button("File", |ui| {
         ui.label("Path:");
         ui.text_edit_singleline(&mut state.path_input);
+        browse::browser(ui, &mut state.path_input);
         let path = path_of(&state.path_input);
         let has = path.is_some();
         if ui
@@ -246,6 +248,7 @@ fn menu_bar(
     ui.menu_button("Export", |ui| {
         ui.label("Path (file, or folder for masks):");
         ui.text_edit_singleline(&mut state.path_input);
+        browse::browser(ui, &mut state.path_input);
         let path = path_of(&state.path_input);
         let target = sel.and_then(|e| {
             objects
