@@ -144,6 +144,12 @@ impl HeadlessRenderer {
         self.app.world_mut().resource_mut::<MarchScene>().scene = Some(scene);
     }
 
+    /// World-space sample spacing; `None`: the scene's default (the CPU
+    /// renderer's).
+    pub fn set_step(&mut self, step: Option<f32>) {
+        self.app.world_mut().resource_mut::<MarchScene>().step = step;
+    }
+
     fn status(&self) -> SharedStatus {
         self.app.world().resource::<SharedStatus>().clone()
     }

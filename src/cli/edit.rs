@@ -111,7 +111,8 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     // The object the stroke timing segments: the mug, else the first one.
     let stroke_object = d.object("mug").or(d.objects.first()).map(|o| o.name.clone());
     let field = Arc::new(d.field);
-    let mut scenes = vec![("field".to_string(), Scene::single(field.clone()))];
+    // (name, scene, sample spacing; None = the renderer's default).
+    let mut scenes = vec![("field".to_string(), Scene::single(field.clone()), None)];
     if let Some(label) = d.labels.label_of("mug").or_else(|| d.objects.first().map(|o| o.label)) {
         let mask = Arc::new(d.labels.mask(label));
         let mut rest = Layer::new(field.clone());
@@ -119,8 +120,16 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         let mut moved = Layer::new(field.clone());
         moved.mask = Mask::Keep(mask);
         moved.to_world = glam::Affine3A::from_translation(glam::Vec3::new(0.3, 0.0, 0.25));
-        scenes.push(("field + one moved object".to_string(), Scene::new(vec![rest, moved])));
+        scenes.push((
+            "field + one moved object".to_string(),
+            Scene::new(vec![rest, moved]),
+            None,
+        ));
     }
+    // The editor's "step ×" slider at 2: half the samples, a coarser image.
+    let coarse = Scene::single(field.clone());
+    let step = coarse.default_step() * 2.0;
+    scenes.push(("field, step ×2 (slider)".to_string(), coarse, Some(step)));
     let views: Vec<Camera> = d
         .cameras
         .frames
@@ -130,10 +139,11 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         .collect();
     println!("{:<28} {:>10} {:>10}", "scene", "ms/frame", "fps");
     let mut first_fps = 0.0;
-    for (i, (name, scene)) in scenes.into_iter().enumerate() {
+    for (i, (name, scene, step)) in scenes.into_iter().enumerate() {
         let scene = Arc::new(scene);
         let mut total = 0.0;
         let mut n = 0;
+        r.set_step(step);
         for cam in &views {
             r.set_camera(cam)?;
             r.set_scene(scene.clone());
@@ -152,6 +162,7 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         }
         println!("{name:<28} {:>10.1} {:>10.2}", 1e3 / fps, fps);
     }
+    r.set_step(None);
     if let Some(object) = &stroke_object {
         stroke_to_visible(&mut r, &a, object, &views[0])?;
     }
