@@ -39,6 +39,10 @@ pub struct Args {
     /// Render only the first N frames.
     #[arg(long)]
     pub frames: Option<usize>,
+    /// Draw VM + MLP appearance through the per-voxel SH fit the editor's
+    /// GPU view uses (to see what the editor shows).
+    #[arg(long)]
+    pub baked_sh: bool,
     /// Background colour, e.g. 1,1,1 (white, the default) or 0,0,0.
     #[arg(long, default_value = "1,1,1", value_parser = parse_rgb)]
     pub background: glam::Vec3,
@@ -62,7 +66,13 @@ pub fn run(a: Args) -> Result<()> {
     }
     let mut layers = vec![];
     for p in &a.fields {
-        layers.push(Layer::new(Arc::new(Field::load(p)?)));
+        let mut field = Arc::new(Field::load(p)?);
+        if a.baked_sh {
+            if let Some(baked) = field.sh_baked()? {
+                field = baked;
+            }
+        }
+        layers.push(Layer::new(field));
     }
     let mut probes = vec![];
     if let Some(path) = &a.object {
