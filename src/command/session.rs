@@ -241,23 +241,14 @@ impl Session {
                 let cache = f.field.feature_cache()?;
                 let mut mask = (*o.mask).clone();
                 let mut g = Grower::new(&cache, st.params.grow);
-                let (limit, total) = match steps {
-                    Growth::Steps(n) => (*n, *n as u64),
-                    Growth::Converge => (MAX_GROW_STEPS, 0),
+                let total = match steps {
+                    Growth::Steps(n) => *n as u64,
+                    Growth::Converge => 0,
                 };
-                // Steps run; like `Grower::converge`, convergence counts the
-                // final step that adds nothing.
-                let mut n = 0;
-                while n < limit {
-                    self.progress.set(&format!("growing '{object}'"), n as u64, total);
-                    let added = g.step(&mut mask);
-                    if added > 0 || total == 0 {
-                        n += 1;
-                    }
-                    if added == 0 {
-                        break;
-                    }
-                }
+                let label = format!("growing '{object}'");
+                let n = g.grow(&mut mask, *steps, MAX_GROW_STEPS, |i| {
+                    self.progress.set(&label, i as u64, total)
+                });
                 out.message = format!("'{object}': {} -> {} voxels in {n} steps", o.mask.count(), mask.count());
                 find_object_mut(st, object)?.mask = Arc::new(mask);
             }

@@ -16,6 +16,7 @@
 //! same neighbourhood as before and would be rejected again). It gives the
 //! same masks as [`grow_step_dense`], which scans the whole grid.
 
+use super::Growth;
 use crate::field::{Bitmap, FeatureCache};
 use rayon::prelude::*;
 
@@ -259,12 +260,32 @@ impl<'a> Grower<'a> {
     }
     /// Steps until nothing changes or `max_steps`; returns the steps taken.
     pub fn converge(&mut self, mask: &mut Bitmap, max_steps: usize) -> usize {
-        for s in 0..max_steps {
+        self.grow(mask, Growth::Converge, max_steps, |_| ())
+    }
+
+    /// Grows as `growth` asks, calling `on_step(i)` before step i (progress
+    /// reports). Returns the steps counted as [`super::Timings::grow_steps`] does:
+    /// `Steps(n)` counts the steps that added voxels (it stops at the first
+    /// that adds none), convergence counts that last, empty step too; at
+    /// most `max_steps` for convergence.
+    pub fn grow(
+        &mut self,
+        mask: &mut Bitmap,
+        growth: Growth,
+        max_steps: usize,
+        mut on_step: impl FnMut(usize),
+    ) -> usize {
+        let (limit, counts_last) = match growth {
+            Growth::Steps(n) => (n, false),
+            Growth::Converge => (max_steps, true),
+        };
+        for s in 0..limit {
+            on_step(s);
             if self.step(mask) == 0 {
-                return s + 1;
+                return s + counts_last as usize;
             }
         }
-        max_steps
+        limit
     }
 }
 

@@ -153,10 +153,7 @@ pub fn region_from_features(
     t.seed_voxels = region.count();
     let t0 = Instant::now();
     let mut g = Grower::new(cache, p.grow);
-    t.grow_steps = match p.growth {
-        Growth::Steps(n) => (0..n).take_while(|_| g.step(&mut region) > 0).count(),
-        Growth::Converge => g.converge(&mut region, MAX_GROW_STEPS),
-    };
+    t.grow_steps = g.grow(&mut region, p.growth, MAX_GROW_STEPS, |_| ());
     t.grow_ms = ms_since(t0);
     t.region_voxels = region.count();
     Ok(region)

@@ -86,24 +86,22 @@ pub fn save(
         names.push(name.to_string());
         tensors.push((Dtype::F32, vec![v.len()], f32_bytes(v)));
     };
-    push("density", &model.density);
-    push("sh", &model.sh);
-    push("m.density", &opt.density.m);
-    push("v.density", &opt.density.v);
-    push("m.sh", &opt.sh.m);
-    push("v.sh", &opt.sh.v);
+    // Each trained array with its Adam moments `m.<name>` / `v.<name>`.
+    let mut trained = vec![
+        ("density", &model.density[..], &opt.density),
+        ("sh", &model.sh[..], &opt.sh),
+    ];
     if let Some(f) = &model.features {
-        push("features", &f.data);
-        push("m.features", &opt.features.m);
-        push("v.features", &opt.features.v);
+        trained.push(("features", &f.data[..], &opt.features));
     }
     if let Some(vm) = &model.vm {
-        push("vm.grid", &vm.grid);
-        push("vm.net", &vm.net);
-        push("m.vm.grid", &opt.vm_grid.m);
-        push("v.vm.grid", &opt.vm_grid.v);
-        push("m.vm.net", &opt.vm_net.m);
-        push("v.vm.net", &opt.vm_net.v);
+        trained.push(("vm.grid", &vm.grid[..], &opt.vm_grid));
+        trained.push(("vm.net", &vm.net[..], &opt.vm_net));
+    }
+    for (name, values, mom) in trained {
+        push(name, values);
+        push(&format!("m.{name}"), &mom.m);
+        push(&format!("v.{name}"), &mom.v);
     }
     let hist: Vec<f32> = history
         .iter()
@@ -167,15 +165,16 @@ pub fn load(path: &Path) -> Result<Restored> {
         .chunks_exact(8)
         .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
         .collect();
+    // The Adam moments saved beside array `name` of `len` values.
+    let moments = |name: &str, len: usize| -> Result<Moments> {
+        Ok(Moments {
+            m: t.f32(&format!("m.{name}"), &[len])?,
+            v: t.f32(&format!("v.{name}"), &[len])?,
+        })
+    };
     let mut opt = OptState {
-        density: Moments {
-            m: t.f32("m.density", &[n])?,
-            v: t.f32("v.density", &[n])?,
-        },
-        sh: Moments {
-            m: t.f32("m.sh", &[n * k])?,
-            v: t.f32("v.sh", &[n * k])?,
-        },
+        density: moments("density", n)?,
+        sh: moments("sh", n * k)?,
         features: Moments::default(),
         vm_grid: Moments::default(),
         vm_net: Moments::default(),
@@ -189,10 +188,7 @@ pub fn load(path: &Path) -> Result<Restored> {
             }
             let fg = GridGeom::new(bounds, res);
             let len = fg.len() * c;
-            opt.features = Moments {
-                m: t.f32("m.features", &[len])?,
-                v: t.f32("v.features", &[len])?,
-            };
+            opt.features = moments("features", len)?;
             Some(DenseGrid {
                 geom: fg,
                 channels: c,
@@ -226,22 +222,17 @@ pub fn load(path: &Path) -> Result<Restored> {
         .collect();
     let mut model = Model::from_parts(geom, state.shift, state.degree, density, sh, active, features)?;
     if let Some((shape, res)) = state.vm {
-        let empty = VmAppearance::new(shape, res, 0).map_err(|e| bad(e.to_string()))?;
-        let (gl, nl) = (empty.grid.len(), empty.net.len());
+        shape.validate().map_err(|e| bad(e.to_string()))?;
+        check_res(res, "checkpoint VM grid").map_err(|e| bad(e.to_string()))?;
+        let (gl, nl) = (shape.grid_len(res), shape.net_len());
         model.vm = Some(VmAppearance::from_parts(
             shape,
             res,
             t.f32("vm.grid", &[gl])?,
             t.f32("vm.net", &[nl])?,
         )?);
-        opt.vm_grid = Moments {
-            m: t.f32("m.vm.grid", &[gl])?,
-            v: t.f32("v.vm.grid", &[gl])?,
-        };
-        opt.vm_net = Moments {
-            m: t.f32("m.vm.net", &[nl])?,
-            v: t.f32("v.vm.net", &[nl])?,
-        };
+        opt.vm_grid = moments("vm.grid", gl)?;
+        opt.vm_net = moments("vm.net", nl)?;
     }
     Ok(Restored {
         state,

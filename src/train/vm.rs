@@ -66,11 +66,30 @@ impl VmShape {
             len: b2 + 3,
         }
     }
-    /// Floats one shaded sample keeps for the backward pass:
-    /// components, channels, MLP input, hidden activations.
+    /// Floats one shaded sample keeps for the backward pass: components,
+    /// MLP input (its first `out` values are the channels), hidden
+    /// activations.
     pub fn row_len(&self) -> usize {
-        self.comps() + self.out + self.inputs() + self.hidden
+        self.comps() + self.inputs() + self.hidden
     }
+    /// Length of the plane + line array on a grid of `res`.
+    pub fn grid_len(&self, res: [usize; 3]) -> usize {
+        grid_offsets(self, res).2
+    }
+    /// Length of the basis + MLP array.
+    pub fn net_len(&self) -> usize {
+        self.net_offsets().len
+    }
+}
+
+/// Where one mode's interpolation reads (see [`VmAppearance::mode_taps`]).
+struct ModeTaps {
+    plane: [usize; 4],
+    plane_w: [f32; 4],
+    plane_stride: usize,
+    line: usize,
+    line_w: [f32; 2],
+    line_stride: usize,
 }
 
 #[derive(Clone, Copy)]
@@ -145,7 +164,7 @@ impl VmAppearance {
         crate::field::geom::check_res(res, "VM appearance grid")?;
         let mut rng = SplitMix64::new(seed ^ 0x005E_ED0F_7E45);
         let mut u = move || 2.0 * rng.unit() as f32 - 1.0;
-        let (_, _, glen) = grid_offsets(&shape, res);
+        let glen = shape.grid_len(res);
         // Uniform with the variance of 0.1·N(0, 1).
         let grid = (0..glen).map(|_| 0.1 * 3f32.sqrt() * u()).collect();
         let o = shape.net_offsets();
@@ -164,7 +183,7 @@ impl VmAppearance {
         shape.validate()?;
         crate::field::geom::check_res(res, "VM appearance grid")?;
         crate::ensure!(
-            grid.len() == grid_offsets(&shape, res).2 && net.len() == shape.net_offsets().len,
+            grid.len() == shape.grid_len(res) && net.len() == shape.net_len(),
             "VM appearance arrays do not match {shape:?} at {res:?}"
         );
         Ok(VmAppearance { shape, res, grid, net })
@@ -184,16 +203,16 @@ impl VmAppearance {
         let sh = &self.shape;
         let (nc, no, ni, nh) = (sh.comps(), sh.out, sh.inputs(), sh.hidden);
         let (comps, rest) = row.split_at_mut(nc);
-        let (chan, rest) = rest.split_at_mut(no);
         let (x, hid) = rest.split_at_mut(ni);
         self.components(g, comps);
         let o = sh.net_offsets();
+        // x = [channels = basisᵀ·components, encoded direction].
+        let (chan, dir) = x.split_at_mut(no);
         chan.fill(0.0);
         for (r, &c) in comps.iter().enumerate() {
             axpy(chan, c, &self.net[r * no..(r + 1) * no]);
         }
-        x[..no].copy_from_slice(chan);
-        x[no..].copy_from_slice(dir_enc);
+        dir.copy_from_slice(dir_enc);
         for (j, h) in hid.iter_mut().enumerate().take(nh) {
             let w = &self.net[o.w1 + j * ni..o.w1 + (j + 1) * ni];
             *h = (self.net[o.b1 + j] + dot(w, x)).max(0.0);
@@ -206,26 +225,42 @@ impl VmAppearance {
         rgb
     }
 
+    /// Interpolation taps of mode `m` at grid coordinates `g`, for
+    /// component 0 (component k adds k·`plane_stride` / k·`line_stride`).
+    fn mode_taps(&self, g: Vec3, m: usize) -> ModeTaps {
+        let (po, lo, _) = grid_offsets(&self.shape, self.res);
+        let (a, b, c) = MODE_AXES[m];
+        let (na, nb, nc) = (self.res[a], self.res[b], self.res[c]);
+        let (ia, fa) = taps(g[a], na);
+        let (ib, fb) = taps(g[b], nb);
+        let (ic, fc) = taps(g[c], nc);
+        let p0 = po[m] + ib * na + ia;
+        ModeTaps {
+            plane: [p0, p0 + 1, p0 + na, p0 + na + 1],
+            plane_w: [(1.0 - fa) * (1.0 - fb), fa * (1.0 - fb), (1.0 - fa) * fb, fa * fb],
+            plane_stride: na * nb,
+            line: lo[m] + ic,
+            line_w: [1.0 - fc, fc],
+            line_stride: nc,
+        }
+    }
+
+    /// Plane and line values of component `k` at `t`.
+    #[inline]
+    fn plane_line(&self, t: &ModeTaps, k: usize) -> (f32, f32) {
+        let (p, po, lo) = (&self.grid, k * t.plane_stride, t.line + k * t.line_stride);
+        let pv = (0..4).map(|i| p[t.plane[i] + po] * t.plane_w[i]).sum();
+        (pv, p[lo] * t.line_w[0] + p[lo + 1] * t.line_w[1])
+    }
+
     /// Plane·line products at grid coordinates `g`.
     fn components(&self, g: Vec3, out: &mut [f32]) {
-        let (po, lo, _) = grid_offsets(&self.shape, self.res);
         let r = self.shape.rank;
-        let gc = g.to_array();
-        for (m, &(a, b, c)) in MODE_AXES.iter().enumerate() {
-            let (na, nb, nc) = (self.res[a], self.res[b], self.res[c]);
-            let (ia, fa) = taps(gc[a], na);
-            let (ib, fb) = taps(gc[b], nb);
-            let (ic, fc) = taps(gc[c], nc);
-            let out = &mut out[m * r..(m + 1) * r];
-            for (k, o) in out.iter_mut().enumerate() {
-                let p0 = po[m] + k * na * nb + ib * na + ia;
-                let p = &self.grid;
-                let pv = p[p0] * (1.0 - fa) * (1.0 - fb)
-                    + p[p0 + 1] * fa * (1.0 - fb)
-                    + p[p0 + na] * (1.0 - fa) * fb
-                    + p[p0 + na + 1] * fa * fb;
-                let l0 = lo[m] + k * nc + ic;
-                *o = pv * (p[l0] * (1.0 - fc) + p[l0 + 1] * fc);
+        for m in 0..3 {
+            let t = self.mode_taps(g, m);
+            for (k, o) in out[m * r..(m + 1) * r].iter_mut().enumerate() {
+                let (pv, lv) = self.plane_line(&t, k);
+                *o = pv * lv;
             }
         }
     }
@@ -245,8 +280,8 @@ impl VmAppearance {
         let (nc, no, ni, nh) = (sh.comps(), sh.out, sh.inputs(), sh.hidden);
         let o = sh.net_offsets();
         let comps = &row[..nc];
-        let x = &row[nc + no..nc + no + ni];
-        let hid = &row[nc + no + ni..nc + no + ni + nh];
+        let x = &row[nc..nc + ni];
+        let hid = &row[nc + ni..nc + ni + nh];
         tmp.clear();
         tmp.resize(nh + no + nc, 0.0);
         let (dh, rest) = tmp.split_at_mut(nh);
@@ -274,31 +309,21 @@ impl VmAppearance {
 
     /// Scatters dL/d(component) into plane and line gradients.
     fn components_backward(&self, g: Vec3, dcomp: &[f32], dgrid: &mut [f32]) {
-        let (po, lo, _) = grid_offsets(&self.shape, self.res);
         let r = self.shape.rank;
-        let gc = g.to_array();
-        let p = &self.grid;
-        for (m, &(a, b, c)) in MODE_AXES.iter().enumerate() {
-            let (na, nb, nc) = (self.res[a], self.res[b], self.res[c]);
-            let (ia, fa) = taps(gc[a], na);
-            let (ib, fb) = taps(gc[b], nb);
-            let (ic, fc) = taps(gc[c], nc);
-            let wp = [(1.0 - fa) * (1.0 - fb), fa * (1.0 - fb), (1.0 - fa) * fb, fa * fb];
+        for m in 0..3 {
+            let t = self.mode_taps(g, m);
             for k in 0..r {
                 let d = dcomp[m * r + k];
                 if d == 0.0 {
                     continue;
                 }
-                let p0 = po[m] + k * na * nb + ib * na + ia;
-                let idx = [p0, p0 + 1, p0 + na, p0 + na + 1];
-                let pv: f32 = (0..4).map(|t| p[idx[t]] * wp[t]).sum();
-                let l0 = lo[m] + k * nc + ic;
-                let lv = p[l0] * (1.0 - fc) + p[l0 + 1] * fc;
-                for t in 0..4 {
-                    dgrid[idx[t]] += d * lv * wp[t];
+                let (pv, lv) = self.plane_line(&t, k);
+                for i in 0..4 {
+                    dgrid[t.plane[i] + k * t.plane_stride] += d * lv * t.plane_w[i];
                 }
-                dgrid[l0] += d * pv * (1.0 - fc);
-                dgrid[l0 + 1] += d * pv * fc;
+                let l0 = t.line + k * t.line_stride;
+                dgrid[l0] += d * pv * t.line_w[0];
+                dgrid[l0 + 1] += d * pv * t.line_w[1];
             }
         }
     }

@@ -142,9 +142,7 @@ pub fn pick_arrow(center: Vec2, tips: &[Option<Vec2>; 3], cursor: Vec2) -> Optio
         .enumerate()
         .filter_map(|(i, tip)| {
             let tip = (*tip)?;
-            let seg = tip - center;
-            let t = ((cursor - center).dot(seg) / seg.length_squared()).clamp(0.0, 1.0);
-            let d = (center + t * seg).distance(cursor);
+            let (t, d) = segment_distance(center, tip, cursor);
             // Skip the first fifth: the centre belongs to no single arrow.
             (d <= GIZMO_PICK && t > 0.2).then_some((i, d))
         })
@@ -190,15 +188,18 @@ pub fn gizmo_rings(to_screen: impl Fn(Vec3) -> Option<Vec2>, center: Vec3, radiu
     })
 }
 
+/// (t, distance) of the point `a + t·(b − a)`, t in [0, 1], nearest `p`.
+fn segment_distance(a: Vec2, b: Vec2, p: Vec2) -> (f32, f32) {
+    let seg = b - a;
+    let t = ((p - a).dot(seg) / seg.length_squared().max(1e-9)).clamp(0.0, 1.0);
+    (t, (a + t * seg).distance(p))
+}
+
 /// Distance from `p` to the closed polyline `pts`.
 fn polyline_distance(pts: &[Vec2], p: Vec2) -> f32 {
     pts.iter()
         .zip(pts.iter().cycle().skip(1))
-        .map(|(&a, &b)| {
-            let seg = b - a;
-            let t = ((p - a).dot(seg) / seg.length_squared().max(1e-9)).clamp(0.0, 1.0);
-            (a + t * seg).distance(p)
-        })
+        .map(|(&a, &b)| segment_distance(a, b, p).1)
         .fold(f32::INFINITY, f32::min)
 }
 

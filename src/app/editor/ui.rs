@@ -17,6 +17,7 @@ use crate::app::gpu::SharedStatus;
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
 use crate::command::{CameraSource, Command, Export, FieldSource};
 use crate::segment::Growth;
+use crate::util::ProgressState;
 use bevy::camera::visibility::RenderLayers;
 use bevy::camera::{CameraOutputMode, ClearColorConfig, Projection, Viewport};
 use bevy::diagnostic::{DiagnosticsStore, FrameTimeDiagnosticsPlugin};
@@ -627,19 +628,7 @@ fn status_line(
     let gpu = status.get();
     ui.horizontal_wrapped(|ui| {
         if let Some((label, secs, p)) = es.progress() {
-            match p.as_ref().and_then(|p| Some((p, p.fraction()?))) {
-                Some((p, f)) => {
-                    let text = format!("{}: {} / {} ({:.0} %)", p.stage, p.done, p.total, 100.0 * f);
-                    ui.add(egui::ProgressBar::new(f).text(text).desired_width(260.0));
-                }
-                None => {
-                    ui.spinner();
-                    if let Some(p) = &p {
-                        let steps = if p.done > 0 { format!(", {}", p.done) } else { String::new() };
-                        ui.label(format!("{}{steps}", p.stage));
-                    }
-                }
-            }
+            progress_widget(ui, p.as_ref());
             ui.label(format!("{label} ({secs:.1} s)"));
         }
         ui.label(&state.status);
@@ -684,8 +673,31 @@ fn status_line(
     }
 }
 
-/// The move gizmo: X / Y / Z arrows (red, green, blue) from the selected
-/// object's centre, brighter under the cursor or while dragged.
+/// A bar with the percentage where the running command knows its total,
+/// else a spinner with its stage (and step count, if any).
+fn progress_widget(ui: &mut egui::Ui, p: Option<&ProgressState>) {
+    match p.and_then(|p| Some((p, p.fraction()?))) {
+        Some((p, f)) => {
+            let text = format!("{}: {} / {} ({:.0} %)", p.stage, p.done, p.total, 100.0 * f);
+            ui.add(egui::ProgressBar::new(f).text(text).desired_width(260.0));
+        }
+        None => {
+            ui.spinner();
+            if let Some(p) = p {
+                let steps = if p.done > 0 {
+                    format!(", {}", p.done)
+                } else {
+                    String::new()
+                };
+                ui.label(format!("{}{steps}", p.stage));
+            }
+        }
+    }
+}
+
+/// The transform gizmo of the selected object: X / Y / Z move arrows and
+/// rotation rings (red, green, blue) and the grey scale circle, each
+/// brighter under the cursor or while dragged; clipped to the 3D view.
 fn draw_gizmo(ctx: &egui::Context, g: &GizmoView) {
     let Some(c) = g.center else { return };
     let mut painter = ctx.layer_painter(egui::LayerId::new(egui::Order::Foreground, "isrf_gizmo".into()));

@@ -262,10 +262,12 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
         }
         // The ray marcher has no MLP: the network is baked into SH once,
         // when the field is first uploaded.
-        Appearance::Vm { .. } => match field.sh_baked()? {
-            Some(baked) => return pack_field(&baked),
-            None => unreachable!("a VM field has a bake"),
-        },
+        Appearance::Vm { .. } => {
+            let baked = field
+                .sh_baked()?
+                .ok_or_else(|| crate::Error::invalid("VM appearance without an SH bake"))?;
+            return pack_field(&baked);
+        }
     };
     let (dims, skip) = skip_grid(&field.density);
     let aux: Vec<u32> = skip
