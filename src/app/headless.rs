@@ -32,6 +32,7 @@ pub struct HeadlessRenderer {
     height: u32,
     camera: Entity,
     target: Handle<Image>,
+    render_scale: f32,
 }
 
 /// The plugins of a window-less app (no winit, no log capture, rendering
@@ -97,6 +98,7 @@ impl HeadlessRenderer {
             height,
             camera,
             target,
+            render_scale: 1.0,
         })
     }
 
@@ -135,13 +137,32 @@ impl HeadlessRenderer {
             projection_for(&k),
             RayMarchCamera {
                 intrinsics: Some([k.fx, k.fy, k.cx, k.cy]),
+                render_scale: self.render_scale,
             },
         ));
         Ok(())
     }
 
+    /// Fraction of each side the march renders (see
+    /// [`RayMarchCamera::render_scale`]); applies from the next `set_camera`.
+    pub fn set_render_scale(&mut self, scale: f32) {
+        self.render_scale = scale;
+    }
+
+    /// Frames drawn and marches run so far (a still view draws without
+    /// marching).
+    pub fn frame_counts(&self) -> (u64, u64) {
+        let s = self.status().get();
+        (s.frames_drawn, s.marches)
+    }
+
     pub fn set_scene(&mut self, scene: Arc<Scene>) {
         self.app.world_mut().resource_mut::<MarchScene>().scene = Some(scene);
+    }
+
+    /// The editor's per-layer overlay (tint / dim); empty for none.
+    pub fn set_overlay(&mut self, overlay: Vec<super::gpu::pack::Overlay>) {
+        self.app.world_mut().resource_mut::<MarchScene>().overlay = overlay;
     }
 
     /// World-space sample spacing; `None`: the scene's default (the CPU

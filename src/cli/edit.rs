@@ -81,10 +81,9 @@ pub struct BenchArgs {
 
 #[cfg(feature = "editor")]
 pub fn bench(a: BenchArgs) -> Result<()> {
-    use anyhow::Context;
     use isrf::app::headless::{gpu_available, HeadlessRenderer};
     use isrf::camera::{Camera, Intrinsics};
-    use isrf::render::{Layer, Mask, Scene};
+    use isrf::render::Scene;
     use std::sync::Arc;
     use std::time::Instant;
 
@@ -110,26 +109,32 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     let k = Intrinsics::from_fov_x(a.width, a.height, 50f32.to_radians());
     // The object the stroke timing segments: the mug, else the first one.
     let stroke_object = d.object("mug").or(d.objects.first()).map(|o| o.name.clone());
+    let mask = d
+        .labels
+        .label_of("mug")
+        .or_else(|| d.objects.first().map(|o| o.label))
+        .map(|l| Arc::new(d.labels.mask(l)));
     let field = Arc::new(d.field);
-    // (name, scene, sample spacing; None = the renderer's default).
-    let mut scenes = vec![("field".to_string(), Scene::single(field.clone()), None)];
-    if let Some(label) = d.labels.label_of("mug").or_else(|| d.objects.first().map(|o| o.label)) {
-        let mask = Arc::new(d.labels.mask(label));
-        let mut rest = Layer::new(field.clone());
-        rest.mask = Mask::Remove(mask.clone());
-        let mut moved = Layer::new(field.clone());
-        moved.mask = Mask::Keep(mask);
-        moved.to_world = glam::Affine3A::from_translation(glam::Vec3::new(0.3, 0.0, 0.25));
-        scenes.push((
-            "field + one moved object".to_string(),
-            Scene::new(vec![rest, moved]),
-            None,
-        ));
+    let moved_scene = mask.map(|m| Arc::new(moved_object_scene(m, &field)));
+    // (name, scene, sample spacing (None: the renderer's default), march
+    // resolution scale).
+    let single = Arc::new(Scene::single(field.clone()));
+    let mut rows = vec![("field".to_string(), single.clone(), None, 1.0)];
+    if let Some(m) = &moved_scene {
+        rows.push(("field + one moved object".to_string(), m.clone(), None, 1.0));
     }
     // The editor's "step ×" slider at 2: half the samples, a coarser image.
-    let coarse = Scene::single(field.clone());
-    let step = coarse.default_step() * 2.0;
-    scenes.push(("field, step ×2 (slider)".to_string(), coarse, Some(step)));
+    rows.push((
+        "field, step ×2 (slider)".to_string(),
+        single.clone(),
+        Some(single.default_step() * 2.0),
+        1.0,
+    ));
+    // What the editor marches while the view moves on a software GPU.
+    rows.push(("field, ½ res (moving)".to_string(), single.clone(), None, 0.5));
+    if let Some(m) = &moved_scene {
+        rows.push(("+ moved object, ½ res".to_string(), m.clone(), None, 0.5));
+    }
     let views: Vec<Camera> = d
         .cameras
         .frames
@@ -137,42 +142,99 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         .step_by((d.cameras.frames.len() / 4).max(1))
         .map(|f| Camera::new(k, f.camera.c2w))
         .collect();
+    println!("every timed frame marches: the camera moves a little between frames");
     println!("{:<28} {:>10} {:>10}", "scene", "ms/frame", "fps");
-    let mut first_fps = 0.0;
-    for (i, (name, scene, step)) in scenes.into_iter().enumerate() {
-        let scene = Arc::new(scene);
-        let mut total = 0.0;
-        let mut n = 0;
+    let mut full_fps = 0.0;
+    let mut moving_fps = 0.0;
+    for (i, (name, scene, step, scale)) in rows.into_iter().enumerate() {
         r.set_step(step);
-        for cam in &views {
-            r.set_camera(cam)?;
-            r.set_scene(scene.clone());
-            r.wait_drawn().context("first frame")?;
-            let t = Instant::now();
-            let frames = a.frames.div_ceil(views.len()).max(1);
-            for _ in 0..frames {
-                r.step();
-            }
-            total += t.elapsed().as_secs_f64();
-            n += frames;
-        }
-        let fps = n as f64 / total;
+        r.set_render_scale(scale);
+        let fps = time_frames(&mut r, scene, &views, a.frames, true)?;
         if i == 0 {
-            first_fps = fps;
+            full_fps = fps;
+        }
+        if scale < 1.0 && moving_fps == 0.0 {
+            moving_fps = fps;
         }
         println!("{name:<28} {:>10.1} {:>10.2}", 1e3 / fps, fps);
     }
+    // A still view composites the last march without marching again.
+    r.set_step(None);
+    r.set_render_scale(1.0);
+    let still = time_frames(&mut r, single, &views, a.frames, false)?;
+    println!("{:<28} {:>10.1} {:>10.2}", "field, still view", 1e3 / still, still);
     r.set_step(None);
     if let Some(object) = &stroke_object {
         stroke_to_visible(&mut r, &a, object, &views[0])?;
     }
-    println!("fps: {first_fps:.2}");
+    println!("fps while moving (½ resolution, the editor's default on software GPUs): {moving_fps:.2}");
+    println!("fps: {full_fps:.2}");
     Ok(())
 }
 
+/// The bench's two-layer scene: an object (`mask`) cut out of the field
+/// and moved.
+#[cfg(feature = "editor")]
+fn moved_object_scene(
+    mask: std::sync::Arc<isrf::field::Bitmap>,
+    field: &std::sync::Arc<isrf::field::Field>,
+) -> isrf::render::Scene {
+    use isrf::render::{Layer, Mask, Scene};
+    let mut rest = Layer::new(field.clone());
+    rest.mask = Mask::Remove(mask.clone());
+    let mut moved = Layer::new(field.clone());
+    moved.mask = Mask::Keep(mask);
+    moved.to_world = glam::Affine3A::from_translation(glam::Vec3::new(0.3, 0.0, 0.25));
+    Scene::new(vec![rest, moved])
+}
+
+/// Frames per second drawing `scene` from each of `views` in turn. With
+/// `moving`, the camera shifts by a hair every frame so that each frame
+/// marches (checked); otherwise the view is still and frames only
+/// composite.
+#[cfg(feature = "editor")]
+fn time_frames(
+    r: &mut isrf::app::headless::HeadlessRenderer,
+    scene: std::sync::Arc<isrf::render::Scene>,
+    views: &[isrf::camera::Camera],
+    frames: usize,
+    moving: bool,
+) -> Result<f64> {
+    use anyhow::Context;
+    use std::time::Instant;
+    let per_view = frames.div_ceil(views.len()).max(1);
+    let mut total = 0.0;
+    let mut n = 0;
+    for cam in views {
+        r.set_camera(cam)?;
+        r.set_scene(scene.clone());
+        r.wait_drawn().context("first frame")?;
+        let (_, marches0) = r.frame_counts();
+        let t = Instant::now();
+        for f in 0..per_view {
+            if moving {
+                let mut c = *cam;
+                let shift = if f % 2 == 0 { 1e-4 } else { 0.0 };
+                c.c2w.translation += c.c2w.matrix3.x_axis * shift;
+                r.set_camera(&c)?;
+            }
+            r.step();
+        }
+        total += t.elapsed().as_secs_f64();
+        n += per_view;
+        let marched = (r.frame_counts().1 - marches0) as usize;
+        anyhow::ensure!(
+            marched == if moving { per_view } else { 0 },
+            "{marched} of {per_view} frames marched"
+        );
+    }
+    Ok(n as f64 / total)
+}
+
 /// Times a demo stroke as the editor runs it: the session's `Stroke`
-/// command (features, k-means, NNFM, growth), the scene rebuild, the mask
-/// upload and the first GPU frame that shows it.
+/// command (features, k-means, NNFM, growth), the scene rebuild with the new
+/// object selected and tinted, the mask upload and the first GPU frame that
+/// shows it.
 #[cfg(feature = "editor")]
 fn stroke_to_visible(
     r: &mut isrf::app::headless::HeadlessRenderer,
@@ -180,7 +242,7 @@ fn stroke_to_visible(
     object: &str,
     view: &isrf::camera::Camera,
 ) -> Result<()> {
-    use isrf::command::session::scene_of;
+    use isrf::app::layers::{build_scene, CutCache, OverlayMode};
     use isrf::command::{Command, FieldSource, Session, StrokeSource};
     use std::sync::Arc;
     use std::time::Instant;
@@ -197,9 +259,21 @@ fn stroke_to_visible(
     })?;
     // As in the editor after loading: features cached, the field on the GPU.
     s.state.fields[0].field.feature_cache()?;
+    let mut cuts = CutCache::default();
+    let mode = OverlayMode {
+        tint_selected: true,
+        dim_others: false,
+    };
+    let mut show = |r: &mut isrf::app::headless::HeadlessRenderer, s: &Session, selected: Option<&str>| -> Result<()> {
+        let (scene, overlay) = build_scene(&s.state, &[], selected, mode, &mut cuts)?;
+        r.set_scene(Arc::new(scene));
+        r.set_overlay(overlay);
+        r.wait_drawn()?;
+        Ok(())
+    };
     r.set_camera(view)?;
-    r.set_scene(Arc::new(scene_of(&s.state).0));
-    r.wait_drawn()?;
+    show(r, &s, None)?;
+    let marches = r.frame_counts().1;
     let t0 = Instant::now();
     s.apply(&Command::Stroke {
         object: object.to_string(),
@@ -210,11 +284,11 @@ fn stroke_to_visible(
         },
     })?;
     let seg = t0.elapsed().as_secs_f64() * 1e3;
-    r.set_scene(Arc::new(scene_of(&s.state).0));
-    r.wait_drawn()?;
+    show(r, &s, Some(object))?;
     let total = t0.elapsed().as_secs_f64() * 1e3;
+    anyhow::ensure!(r.frame_counts().1 > marches, "the stroke's result was never marched");
     println!(
-        "stroke -> visible: {total:.0} ms (segmentation {seg:.0} ms, mask upload + frame {:.0} ms)",
+        "stroke -> visible: {total:.0} ms (segmentation {seg:.0} ms, scene + mask upload + frame {:.0} ms)",
         total - seg
     );
     Ok(())

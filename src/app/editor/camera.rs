@@ -1,8 +1,10 @@
 //! Camera controls: orbit / pan / zoom (bevy_panorbit_camera, switched off
 //! while egui has the pointer, while painting or transforming, and in fly
-//! mode), a WASD fly mode, and snapping to the capture's views.
+//! mode), a WASD fly mode, snapping to the capture's views, and the march
+//! resolution while the view moves.
 
-use super::state::{EditorState, Tool};
+use super::state::{EditorState, MovingResolution, Tool};
+use crate::app::gpu::{MarchScene, RayMarchCamera};
 use crate::app::convert::{bevy_transform, projection_for};
 use crate::camera::Camera as IsrfCamera;
 use bevy::camera::Projection;
@@ -53,6 +55,78 @@ pub fn snap_to(
         p.fov = q.fov;
     }
     aim_orbit(pan, transform, focus_depth);
+}
+
+/// Seconds without a change after which the view counts as still.
+const REST_SECONDS: f64 = 0.3;
+
+/// Tracks whether the view is in motion: two changes less than
+/// [`REST_SECONDS`] apart start a motion, [`REST_SECONDS`] without one end
+/// it. A single change (a stroke's result, a click) is no motion, so it is
+/// marched once, at full resolution.
+#[derive(Default, Debug, Clone, Copy)]
+pub struct MotionClock {
+    last_change: Option<f64>,
+    moving: bool,
+}
+
+impl MotionClock {
+    /// Updates the clock at time `now` (seconds) and says whether the view
+    /// is moving.
+    pub fn tick(&mut self, now: f64, changed: bool) -> bool {
+        let recent = self.last_change.is_some_and(|t| now - t < REST_SECONDS);
+        if changed {
+            self.moving = recent;
+            self.last_change = Some(now);
+        } else if !recent {
+            self.moving = false;
+        }
+        self.moving
+    }
+}
+
+/// The march resolution scale for a mode, on a software GPU or not.
+pub fn moving_scale(mode: MovingResolution, software_gpu: bool, moving: bool) -> f32 {
+    let half = match mode {
+        MovingResolution::Auto => software_gpu,
+        MovingResolution::Full => false,
+        MovingResolution::Half => true,
+    };
+    if moving && half {
+        0.5
+    } else {
+        1.0
+    }
+}
+
+/// What the view shows besides the scene: pose and viewport.
+type ViewPose = (Mat4, Option<UVec4>);
+
+/// Marches at a lower resolution while the view moves (camera, drags,
+/// anything that rebuilds the scene every frame), in full once it rests.
+#[allow(clippy::type_complexity)]
+pub fn adaptive_resolution(
+    time: Res<Time<Real>>,
+    state: Res<EditorState>,
+    march: Res<MarchScene>,
+    adapter: Option<Res<bevy::render::renderer::RenderAdapterInfo>>,
+    mut clock: Local<MotionClock>,
+    mut last: Local<Option<ViewPose>>,
+    mut cams: Query<(&GlobalTransform, &Camera, &mut RayMarchCamera), With<EditorCamera>>,
+) {
+    let Ok((t, cam, mut rm)) = cams.single_mut() else {
+        return;
+    };
+    let viewport = cam.viewport.as_ref().map(|v| v.physical_position.extend(v.physical_size.x).extend(v.physical_size.y));
+    let pose = (t.to_matrix(), viewport);
+    let changed = march.is_changed() || last.as_ref() != Some(&pose);
+    *last = Some(pose);
+    let software = adapter.is_some_and(|a| a.device_type == wgpu::DeviceType::Cpu);
+    let moving = clock.tick(time.elapsed_secs_f64(), changed);
+    let scale = moving_scale(state.moving_resolution, software, moving);
+    if rm.render_scale != scale {
+        rm.render_scale = scale;
+    }
 }
 
 /// Enables the orbit controller only when the mouse is free for it, and
@@ -137,6 +211,32 @@ pub fn fly(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn motion_needs_two_close_changes_and_ends_after_a_rest() {
+        let mut c = MotionClock::default();
+        // A single change is no motion.
+        assert!(!c.tick(0.0, true));
+        assert!(!c.tick(0.1, false));
+        // A second change soon after starts one; it lasts while changes
+        // keep coming, and ends REST_SECONDS after the last.
+        assert!(c.tick(0.2, true));
+        assert!(c.tick(0.4, true));
+        assert!(c.tick(0.6, false));
+        assert!(!c.tick(0.71, false));
+        // A change long after is again a single change.
+        assert!(!c.tick(5.0, true));
+    }
+
+    #[test]
+    fn half_resolution_only_while_moving_and_where_the_mode_wants_it() {
+        use MovingResolution::*;
+        assert_eq!(moving_scale(Auto, true, true), 0.5);
+        assert_eq!(moving_scale(Auto, false, true), 1.0);
+        assert_eq!(moving_scale(Auto, true, false), 1.0);
+        assert_eq!(moving_scale(Half, false, true), 0.5);
+        assert_eq!(moving_scale(Full, true, true), 1.0);
+    }
 
     #[test]
     fn orbit_angles_reproduce_the_eye() {

@@ -156,6 +156,12 @@ impl Plugin for EditorPlugin {
             .configure_sets(Update, EditorSystems::Input.before(EditorSystems::Model))
             .add_systems(Startup, spawn_camera)
             .add_systems(
+                PostUpdate,
+                camera::adaptive_resolution
+                    .after(sync_scene)
+                    .after(bevy::transform::TransformSystems::Propagate),
+            )
+            .add_systems(
                 Update,
                 (
                     tools::gizmo,

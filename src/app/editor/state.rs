@@ -15,6 +15,17 @@ pub enum Tool {
     Brush,
 }
 
+/// How the view marches while it moves (camera, drags): fewer pixels keep
+/// a slow (software) GPU interactive; a still view is always drawn in full.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum MovingResolution {
+    /// Half resolution on software GPUs (lavapipe), full on real ones.
+    #[default]
+    Auto,
+    Full,
+    Half,
+}
+
 /// Keyboard transform modes (Blender-like G / R / S).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum TransformMode {
@@ -81,6 +92,7 @@ pub struct EditorState {
     pub fly: bool,
     /// Sample step multiplier (1 = the reference step; larger is faster).
     pub step_scale: f32,
+    pub moving_resolution: MovingResolution,
     pub background: [f32; 3],
     pub transform: Option<TransformDrag>,
     /// One-line status (bottom bar).
@@ -112,6 +124,7 @@ impl Default for EditorState {
             },
             fly: false,
             step_scale: 1.0,
+            moving_resolution: MovingResolution::Auto,
             background: [1.0; 3],
             transform: None,
             status: "ready".into(),

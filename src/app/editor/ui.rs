@@ -10,7 +10,7 @@
 use super::browse;
 use super::camera::{snap_to, EditorCamera};
 use super::session::{EditorSession, Request};
-use super::state::{CurrentStroke, EditorState, GizmoView, Handle, Tool, TransformMode};
+use super::state::{CurrentStroke, EditorState, GizmoView, Handle, MovingResolution, Tool, TransformMode};
 use super::tools::{self, transform_command};
 use crate::app::convert::{bevy_transform, to_bevy_vec3};
 use crate::app::gpu::SharedStatus;
@@ -605,6 +605,18 @@ fn view_panel(ui: &mut egui::Ui, state: &mut EditorState, snap: &mut Option<usiz
         ui.color_edit_button_rgb(&mut state.background);
     });
     ui.add(egui::Slider::new(&mut state.step_scale, 1.0..=4.0).text("step × (faster, coarser)"));
+    let labels = [
+        (MovingResolution::Auto, "auto (½ on software GPUs)"),
+        (MovingResolution::Full, "full"),
+        (MovingResolution::Half, "½"),
+    ];
+    egui::ComboBox::from_label("resolution while moving")
+        .selected_text(labels.iter().find(|l| l.0 == state.moving_resolution).map_or("", |l| l.1))
+        .show_ui(ui, |ui| {
+            for (mode, label) in labels {
+                ui.selectable_value(&mut state.moving_resolution, mode, label);
+            }
+        });
     if !state.capture_cameras.is_empty() {
         egui::ComboBox::from_label("capture view")
             .selected_text("snap to…")

@@ -3,15 +3,22 @@
 //! [`RayMarchCamera`], before bevy's opaque pass, writing colour and depth so
 //! that meshes and gizmos drawn afterwards compose with the volume.
 //!
+//! The march renders into per-view textures, and only when what it shows
+//! changed (camera, scene, masks, size); a cheap composite pass
+//! (`shaders/composite.wgsl`) draws them into the view every frame. A still
+//! view thus costs nothing, and [`RayMarchCamera::render_scale`] lets the
+//! editor march fewer pixels while the view moves (see [`view`]).
+//!
 //! Flow (as bevy's own render features): the main world holds a
 //! [`MarchScene`] resource (the library's `render::Scene`, shared with `Arc`s,
 //! so extraction copies pointers); `prepare_scene` packs and uploads each
 //! field's grids once (keyed by the field's `Arc` identity; see [`pack`] for
 //! the layout) and re-uploads only the mask bitmaps whose contents changed;
-//! `prepare_views` builds one bind group per view; `raymarch_pass` runs in
-//! the `Core3d` schedule.
+//! `view::prepare_views` decides per view whether to march and builds the
+//! bind groups; `view::raymarch_pass` runs in the `Core3d` schedule.
 
 pub mod pack;
+mod view;
 
 use crate::field::{Bitmap, Field};
 use crate::render::Scene;
@@ -19,20 +26,17 @@ use bevy::asset::{Assets, Handle};
 use bevy::core_pipeline::core_3d::main_opaque_pass_3d;
 use bevy::core_pipeline::{Core3d, Core3dSystems, FullscreenShader};
 use bevy::prelude::*;
-use bevy::render::camera::ExtractedCamera;
 use bevy::render::extract_component::{ExtractComponent, ExtractComponentPlugin};
 use bevy::render::extract_resource::{ExtractResource, ExtractResourcePlugin};
 use bevy::render::render_resource::binding_types::{storage_buffer_read_only_sized, uniform_buffer_sized};
 use bevy::render::render_resource::{
-    BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor,
-    BufferUsages, CachedPipelineState, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction,
-    DepthStencilState, FragmentState, MultisampleState, PipelineCache, RenderPassDescriptor, RenderPipelineDescriptor,
-    ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureFormat,
+    BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor, BufferUsages, ColorTargetState,
+    ColorWrites, FragmentState, RenderPipelineDescriptor, ShaderStages, SpecializedRenderPipeline,
+    SpecializedRenderPipelines, TextureFormat,
 };
-use bevy::render::renderer::{RenderContext, RenderDevice, RenderQueue, ViewQuery};
-use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
+use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::{Render, RenderApp, RenderStartup, RenderSystems};
-use bevy::shader::Shader;
+use bevy::shader::{Shader, ShaderDefVal};
 use pack::{GpuLayer, GpuView, Overlay, PackedField};
 use std::num::NonZero;
 use std::sync::{Arc, Mutex};
@@ -67,12 +71,26 @@ impl ExtractResource for MarchScene {
     }
 }
 
-/// Marks a camera that draws the ray-marched scene. `intrinsics`
-/// (fx, fy, cx, cy in pixels) overrides the ones derived from the camera's
-/// perspective projection, e.g. to match an `isrf` camera exactly.
-#[derive(Component, Clone, Copy, Debug, Default, ExtractComponent)]
+/// Marks a camera that draws the ray-marched scene.
+#[derive(Component, Clone, Copy, Debug, ExtractComponent)]
 pub struct RayMarchCamera {
+    /// fx, fy, cx, cy in pixels: overrides the ones derived from the
+    /// camera's perspective projection, e.g. to match an `isrf` camera
+    /// exactly.
     pub intrinsics: Option<[f32; 4]>,
+    /// Fraction of the viewport's width and height that the march renders
+    /// (clamped to [1/8, 1]); the composite pass upsamples it. 1 draws
+    /// the same image as the CPU renderer.
+    pub render_scale: f32,
+}
+
+impl Default for RayMarchCamera {
+    fn default() -> Self {
+        RayMarchCamera {
+            intrinsics: None,
+            render_scale: 1.0,
+        }
+    }
 }
 
 /// Shared between the worlds: what the render world did last.
@@ -80,6 +98,9 @@ pub struct RayMarchCamera {
 pub struct RenderStatus {
     /// Frames in which the pass drew (pipeline compiled, scene uploaded).
     pub frames_drawn: u64,
+    /// Frames among them that ran the ray march (the others showed the
+    /// previous march unchanged).
+    pub marches: u64,
     /// Pointer identity of the scene the last drawn frame showed.
     pub scene_drawn: usize,
     /// Last upload or packing error (shown in the UI).
@@ -115,10 +136,12 @@ impl Plugin for RayMarchPlugin {
             .ok()
             .and_then(|p| std::fs::read_to_string(p).ok())
             .unwrap_or_else(|| include_str!("../../../shaders/raymarch.wgsl").to_string());
-        let shader = app
-            .world_mut()
-            .resource_mut::<Assets<Shader>>()
-            .add(Shader::from_wgsl(source, "shaders/raymarch.wgsl"));
+        let mut shaders = app.world_mut().resource_mut::<Assets<Shader>>();
+        let shader = shaders.add(Shader::from_wgsl(source, "shaders/raymarch.wgsl"));
+        let composite = shaders.add(Shader::from_wgsl(
+            include_str!("../../../shaders/composite.wgsl"),
+            "shaders/composite.wgsl",
+        ));
         let status = SharedStatus::default();
         app.init_resource::<MarchScene>()
             .insert_resource(status.clone())
@@ -130,21 +153,22 @@ impl Plugin for RayMarchPlugin {
             return;
         };
         render_app
-            .insert_resource(RayMarchShader(shader))
+            .insert_resource(RayMarchShaders { march: shader, composite })
             .insert_resource(status)
             .init_resource::<GpuSceneCache>()
             .init_resource::<SpecializedRenderPipelines<RayMarchPipeline>>()
-            .add_systems(RenderStartup, init_pipeline)
+            .init_resource::<SpecializedRenderPipelines<view::CompositePipeline>>()
+            .add_systems(RenderStartup, (init_pipeline, view::init_composite_pipeline))
             .add_systems(
                 Render,
                 (
                     prepare_scene.in_set(RenderSystems::PrepareResources),
-                    prepare_views.in_set(RenderSystems::PrepareBindGroups),
+                    view::prepare_views.in_set(RenderSystems::PrepareBindGroups),
                 ),
             )
             .add_systems(
                 Core3d,
-                raymarch_pass
+                view::raymarch_pass
                     .in_set(Core3dSystems::MainPass)
                     .before(main_opaque_pass_3d),
             );
@@ -152,7 +176,10 @@ impl Plugin for RayMarchPlugin {
 }
 
 #[derive(Resource)]
-struct RayMarchShader(Handle<Shader>);
+struct RayMarchShaders {
+    march: Handle<Shader>,
+    composite: Handle<Shader>,
+}
 
 #[derive(Resource)]
 struct RayMarchPipeline {
@@ -161,7 +188,7 @@ struct RayMarchPipeline {
     fullscreen: FullscreenShader,
 }
 
-fn init_pipeline(mut commands: Commands, shader: Res<RayMarchShader>, fullscreen: Res<FullscreenShader>) {
+fn init_pipeline(mut commands: Commands, shaders: Res<RayMarchShaders>, fullscreen: Res<FullscreenShader>) {
     let storage = || storage_buffer_read_only_sized(false, None);
     let layout = BindGroupLayoutDescriptor::new(
         "isrf_raymarch_layout",
@@ -180,43 +207,48 @@ fn init_pipeline(mut commands: Commands, shader: Res<RayMarchShader>, fullscreen
     );
     commands.insert_resource(RayMarchPipeline {
         layout,
-        shader: shader.0.clone(),
+        shader: shaders.march.clone(),
         fullscreen: fullscreen.clone(),
     });
 }
 
+/// The march's colour target (linear, filterable for the upsampling).
+const MARCH_COLOR_FORMAT: TextureFormat = TextureFormat::Rgba16Float;
+/// The march's depth target (the clip-space depth as a colour).
+const MARCH_DEPTH_FORMAT: TextureFormat = TextureFormat::R32Float;
+
+/// The bound on the layer count a march pipeline is specialised for: 1, 2,
+/// 4 or [`pack::MAX_LAYERS`] (see the shader's `MAX_LAYERS`).
+fn layer_bound(layers: usize) -> u32 {
+    match layers {
+        0 | 1 => 1,
+        2 => 2,
+        3 | 4 => 4,
+        _ => pack::MAX_LAYERS as u32,
+    }
+}
+
 impl SpecializedRenderPipeline for RayMarchPipeline {
-    /// Target format, MSAA samples, and whether the scene has one layer.
-    /// The one-layer variant (shader def `ONE_LAYER`) sizes the per-layer
-    /// arrays to 1 so that they live in registers: about 25 % faster on
-    /// lavapipe for the common single-field view.
-    type Key = (TextureFormat, u32, bool);
-    fn specialize(&self, (format, samples, one_layer): Self::Key) -> RenderPipelineDescriptor {
+    /// The layer bound ([`layer_bound`]).
+    type Key = u32;
+    fn specialize(&self, bound: Self::Key) -> RenderPipelineDescriptor {
+        let target = |format| {
+            Some(ColorTargetState {
+                format,
+                blend: None,
+                write_mask: ColorWrites::ALL,
+            })
+        };
         RenderPipelineDescriptor {
             label: Some("isrf_raymarch_pipeline".into()),
             layout: vec![self.layout.clone()],
             vertex: self.fullscreen.to_vertex_state(),
             fragment: Some(FragmentState {
                 shader: self.shader.clone(),
-                shader_defs: if one_layer { vec!["ONE_LAYER".into()] } else { vec![] },
+                shader_defs: vec![ShaderDefVal::UInt("MAX_LAYERS".into(), bound)],
                 entry_point: Some("fragment".into()),
-                targets: vec![Some(ColorTargetState {
-                    format,
-                    blend: None,
-                    write_mask: ColorWrites::ALL,
-                })],
+                targets: vec![target(MARCH_COLOR_FORMAT), target(MARCH_DEPTH_FORMAT)],
             }),
-            depth_stencil: Some(DepthStencilState {
-                format: bevy::core_pipeline::core_3d::CORE_3D_DEPTH_FORMAT,
-                depth_write_enabled: Some(true),
-                depth_compare: Some(CompareFunction::Always),
-                stencil: default(),
-                bias: default(),
-            }),
-            multisample: MultisampleState {
-                count: samples,
-                ..default()
-            },
             ..default()
         }
     }
@@ -244,6 +276,8 @@ struct GpuSceneCache {
     background: [f32; 4],
     min_transmittance: f32,
     scene_ptr: usize,
+    /// Bumped whenever grids or bitmaps are uploaded (views re-march).
+    generation: u64,
     ready: bool,
 }
 
@@ -318,6 +352,7 @@ fn update_fields(
     cache.aux_buffer = Some(storage_buffer(device, "isrf_aux", bytemuck::cast_slice(&aux)));
     cache.density_buffer = Some(storage_buffer(device, "isrf_density", bytemuck::cast_slice(&density)));
     cache.color_buffer = Some(storage_buffer(device, "isrf_colors", bytemuck::cast_slice(&colors)));
+    cache.generation += 1;
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     status.update(|s| {
         s.upload_ms = ms;
@@ -357,6 +392,7 @@ fn update_bitmaps(
             }
         }
         if n > 0 {
+            cache.generation += 1;
             status.update(|s| s.bitmap_uploads += n);
         }
     } else {
@@ -366,6 +402,7 @@ fn update_bitmaps(
         }
         cache.bitmap_buffer = Some(storage_buffer(device, "isrf_bitmaps", bytemuck::cast_slice(&words)));
         cache.bitmap_words = total;
+        cache.generation += 1;
         let n = bitmaps.len() as u64;
         status.update(|s| s.bitmap_uploads += n);
     }
@@ -415,135 +452,4 @@ fn update_cache(
     cache.scene_ptr = Arc::as_ptr(scene) as usize;
     status.update(|s| s.error = None);
     Ok(())
-}
-
-#[derive(Component)]
-struct RayMarchViewBindGroup(BindGroup);
-
-#[derive(Component)]
-struct RayMarchPipelineId(CachedRenderPipelineId);
-
-/// Intrinsics (fx, fy, cx, cy) of a perspective view from its projection:
-/// bevy's infinite reverse-z perspective has `[0][0] = f/aspect`,
-/// `[1][1] = f` with f = 1/tan(fov_y/2); the principal point is the centre.
-fn view_intrinsics(view: &ExtractedView) -> [f32; 4] {
-    let p = view.clip_from_view.to_cols_array_2d();
-    let (w, h) = (view.viewport.z as f32, view.viewport.w as f32);
-    [p[0][0] * 0.5 * w, p[1][1] * 0.5 * h, 0.5 * w, 0.5 * h]
-}
-
-#[allow(clippy::too_many_arguments)]
-fn prepare_views(
-    mut commands: Commands,
-    views: Query<(Entity, &ExtractedView, &RayMarchCamera, Option<&Msaa>)>,
-    cache: Res<GpuSceneCache>,
-    pipeline: Option<Res<RayMarchPipeline>>,
-    mut pipelines: ResMut<SpecializedRenderPipelines<RayMarchPipeline>>,
-    pipeline_cache: Res<PipelineCache>,
-    device: Res<RenderDevice>,
-) {
-    let Some(pipeline) = pipeline else { return };
-    for (entity, view, cam, msaa) in &views {
-        if !cache.ready {
-            commands.entity(entity).remove::<RayMarchViewBindGroup>();
-            continue;
-        }
-        let samples = msaa.map_or(1, |m| m.samples());
-        let one_layer = cache.layers.len() <= 1;
-        let id = pipelines.specialize(&pipeline_cache, &pipeline, (view.target_format, samples, one_layer));
-        // Compile the other variant too, so that moving the first object
-        // (one layer -> several) never waits for a pipeline.
-        pipelines.specialize(&pipeline_cache, &pipeline, (view.target_format, samples, !one_layer));
-        let world_from_view = view.world_from_view.to_matrix();
-        let clip_from_world = view
-            .clip_from_world
-            .unwrap_or(view.clip_from_view * world_from_view.inverse());
-        let gv = GpuView {
-            c2w: world_from_view.to_cols_array_2d(),
-            clip_from_world: clip_from_world.to_cols_array_2d(),
-            intrinsics: cam.intrinsics.unwrap_or_else(|| view_intrinsics(view)),
-            background: cache.background,
-            march: [
-                cache.step,
-                cache.min_transmittance,
-                view.viewport.x as f32,
-                view.viewport.y as f32,
-            ],
-            counts: [cache.layers.len() as u32, 0, 0, 0],
-        };
-        let uniform = device.create_buffer_with_data(&BufferInitDescriptor {
-            label: Some("isrf_view"),
-            contents: bytemuck::bytes_of(&gv),
-            usage: BufferUsages::UNIFORM,
-        });
-        let (Some(layers), Some(fields), Some(aux), Some(bitmaps), Some(density), Some(colors)) = (
-            &cache.layer_buffer,
-            &cache.field_buffer,
-            &cache.aux_buffer,
-            &cache.bitmap_buffer,
-            &cache.density_buffer,
-            &cache.color_buffer,
-        ) else {
-            continue;
-        };
-        let bind_group = device.create_bind_group(
-            "isrf_raymarch_bind_group",
-            &pipeline_cache.get_bind_group_layout(&pipeline.layout),
-            &BindGroupEntries::sequential((
-                uniform.as_entire_binding(),
-                layers.as_entire_binding(),
-                fields.as_entire_binding(),
-                aux.as_entire_binding(),
-                bitmaps.as_entire_binding(),
-                density.as_entire_binding(),
-                colors.as_entire_binding(),
-            )),
-        );
-        commands
-            .entity(entity)
-            .insert((RayMarchViewBindGroup(bind_group), RayMarchPipelineId(id)));
-    }
-}
-
-fn raymarch_pass(
-    view: ViewQuery<(
-        &ExtractedCamera,
-        &ViewTarget,
-        &ViewDepthTexture,
-        &RayMarchViewBindGroup,
-        &RayMarchPipelineId,
-    )>,
-    pipeline_cache: Res<PipelineCache>,
-    cache: Res<GpuSceneCache>,
-    status: Res<SharedStatus>,
-    mut ctx: RenderContext,
-) {
-    let (camera, target, depth, bind_group, pipeline_id) = view.into_inner();
-    let Some(pipeline) = pipeline_cache.get_render_pipeline(pipeline_id.0) else {
-        if let CachedPipelineState::Err(e) = pipeline_cache.get_render_pipeline_state(pipeline_id.0) {
-            let msg = format!("the ray-marching shader failed to compile: {e}");
-            status.update(|s| s.error = Some(msg));
-        }
-        return;
-    };
-    let color_attachments = [Some(target.get_color_attachment())];
-    let mut pass = ctx.begin_tracked_render_pass(RenderPassDescriptor {
-        label: Some("isrf_raymarch_pass"),
-        color_attachments: &color_attachments,
-        depth_stencil_attachment: Some(depth.get_attachment(StoreOp::Store)),
-        timestamp_writes: None,
-        occlusion_query_set: None,
-        multiview_mask: None,
-    });
-    if let Some(viewport) = camera.viewport.as_ref() {
-        pass.set_camera_viewport(viewport);
-    }
-    pass.set_render_pipeline(pipeline);
-    pass.set_bind_group(0, &bind_group.0, &[]);
-    pass.draw(0..3, 0..1);
-    let ptr = cache.scene_ptr;
-    status.update(|s| {
-        s.frames_drawn += 1;
-        s.scene_drawn = ptr;
-    });
 }
