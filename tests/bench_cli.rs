@@ -67,3 +67,36 @@ fn bench_rejects_bad_arguments_with_a_message() {
     assert!(!ok);
     assert!(err.contains("unicorn"), "{err}");
 }
+
+/// `isrf bench editor` on a tiny grid: every row prints, each timed frame
+/// marched (the command checks that itself and fails otherwise), and the
+/// last line is `fps: <number>`. Skips where no GPU adapter exists.
+#[cfg(feature = "editor")]
+#[test]
+fn bench_editor_ends_with_fps() {
+    if !isrf::app::headless::gpu_available() {
+        eprintln!("skipping: no GPU adapter (install mesa-vulkan-drivers and set WGPU_BACKEND=vulkan)");
+        return;
+    }
+    let (ok, out, err) = isrf(&[
+        "bench", "editor", "--res", "32", "--width", "80", "--height", "48", "--frames", "2",
+    ]);
+    assert!(ok, "bench editor failed: {err}\n{out}");
+    for row in [
+        "field ",
+        "field + one moved object",
+        "½ res (moving)",
+        "field, still view",
+        "stroke -> visible",
+        "fps while moving",
+    ] {
+        assert!(out.contains(row), "row {row:?} missing:\n{out}");
+    }
+    let line = last_line(&out);
+    let n: f64 = line
+        .strip_prefix("fps: ")
+        .unwrap_or_else(|| panic!("last line is not 'fps: <number>': {line:?}"))
+        .parse()
+        .unwrap_or_else(|e| panic!("not a number in {line:?}: {e}"));
+    assert!(n.is_finite() && n > 0.0, "{line}");
+}

@@ -118,10 +118,13 @@ fn strokes_through_the_ecs_equal_the_library_and_undo_redo_restore() {
     assert!(want.count() > 20, "the mug stroke selects something");
     assert_eq!(*bitmap, want, "ECS object == library segmentation");
 
-    // The scene for the GPU shows the selection as its own layer.
+    // The scene for the GPU tints the selection in place: still one layer,
+    // with the object's bitmap as its highlight mask.
     let march = app.world().resource::<MarchScene>();
-    assert_eq!(march.scene.as_ref().unwrap().layers.len(), 2);
-    assert!(march.overlay.iter().any(|o| o.highlight));
+    assert_eq!(march.scene.as_ref().unwrap().layers.len(), 1);
+    let ov = &march.overlay[0];
+    assert!(ov.highlight);
+    assert_eq!(**ov.highlight_mask.as_ref().unwrap(), *bitmap);
 
     // A second (negative) stroke on the selected object, then undo / redo.
     let mut neg = stroke.clone();

@@ -306,3 +306,97 @@ fn scripts_render_on_the_gpu_like_on_the_cpu() {
     }
     assert_eq!(compared, 4);
 }
+
+/// Selecting an object that sits in place tints it through a highlight
+/// mask on its field's layer: one layer to march, and the same image as
+/// splitting the object out into a tinted layer of its own (the rest
+/// dimmed), which is exact by construction (densities σ·b and σ·(1 − b)).
+#[test]
+fn an_in_place_selection_tints_like_a_split_into_two_layers() {
+    use isrf::app::gpu::pack::Overlay;
+    if skip() {
+        return;
+    }
+    let (d, cam) = demo();
+    let field = Arc::new(d.field);
+    let mug = Arc::new(d.labels.mask(d.labels.label_of("mug").unwrap()));
+    let mut r = HeadlessRenderer::new(W, H).unwrap();
+    let plain = r.render(Arc::new(Scene::single(field.clone())), &cam).unwrap();
+
+    r.set_overlay(vec![Overlay {
+        highlight: true,
+        dim: true,
+        highlight_mask: Some(mug.clone()),
+    }]);
+    let one = r.render(Arc::new(Scene::single(field.clone())), &cam).unwrap();
+
+    let mut rest = Layer::new(field.clone());
+    rest.mask = Mask::Remove(mug.clone());
+    let mut part = Layer::new(field.clone());
+    part.mask = Mask::Keep(mug);
+    r.set_overlay(vec![
+        Overlay {
+            dim: true,
+            ..Default::default()
+        },
+        Overlay {
+            highlight: true,
+            ..Default::default()
+        },
+    ]);
+    let two = r.render(Arc::new(Scene::new(vec![rest, part])), &cam).unwrap();
+    let p = psnr(&one, &two);
+    eprintln!("highlight mask vs split layers: PSNR {p:.2} dB");
+    assert!(p >= MIN_PSNR, "highlight mask vs split: {p:.2} dB < {MIN_PSNR}");
+    let tinted = psnr(&one, &plain);
+    assert!(
+        tinted < 30.0,
+        "the overlay changed little: {tinted:.2} dB from the plain field"
+    );
+}
+
+/// The march runs only when what it shows changes; a still view composites
+/// the last march again, pixel for pixel. A half-resolution march (the
+/// editor's while moving) is upsampled to a close image, and going back
+/// to full resolution restores the exact one.
+#[test]
+fn still_views_reuse_the_march_and_half_resolution_is_close() {
+    if skip() {
+        return;
+    }
+    let (d, cam) = demo();
+    let scene = Arc::new(Scene::single(Arc::new(d.field)));
+    let mut r = HeadlessRenderer::new(W, H).unwrap();
+    r.set_camera(&cam).unwrap();
+    r.set_scene(scene.clone());
+    r.wait_drawn().unwrap();
+    let full = r.capture().unwrap();
+    let (frames, marches) = r.frame_counts();
+    for _ in 0..3 {
+        r.step();
+    }
+    let (frames2, marches2) = r.frame_counts();
+    assert!(frames2 >= frames + 3, "a still view is still drawn every frame");
+    assert_eq!(marches2, marches, "a still view does not march again");
+    assert_eq!(r.capture().unwrap(), full, "the composite shows the last march exactly");
+
+    r.set_render_scale(0.5);
+    r.set_camera(&cam).unwrap();
+    r.wait_drawn().unwrap();
+    let half = r.capture().unwrap();
+    assert_eq!(r.frame_counts().1, marches + 1, "the new resolution marched once");
+    let to_rgb = |b: &[u8]| -> Vec<Vec3> {
+        b.chunks_exact(4)
+            .map(|p| Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32) / 255.0)
+            .collect()
+    };
+    let p = psnr(&to_rgb(&half), &to_rgb(&full));
+    eprintln!("half-resolution march upsampled vs full: PSNR {p:.2} dB");
+    assert!(half != full, "the half-resolution image is a different image");
+    assert!(p >= 20.0, "half resolution is too far from full: {p:.2} dB");
+
+    r.set_render_scale(1.0);
+    r.set_camera(&cam).unwrap();
+    r.wait_drawn().unwrap();
+    assert_eq!(r.capture().unwrap(), full, "full resolution again: the same image");
+}

@@ -14,8 +14,7 @@
 
 use crate::command::session::{scene_of, State};
 use crate::field::{Bitmap, Field};
-use crate::render::{ColorEdit, Layer, Mask, Scene};
-use crate::Result;
+use crate::render::{ColorEdit, Mask, Scene};
 use bevy::prelude::*;
 use glam::Affine3A;
 use std::sync::Arc;
@@ -65,43 +64,16 @@ pub struct Preview {
     pub color_edit: ColorEdit,
 }
 
-/// Remembers unions of bitmaps keyed by the bitmaps' identities, so that
-/// rebuilding the scene (e.g. every frame of a drag) reuses the same `Arc`.
-#[derive(Default)]
-pub struct CutCache {
-    entries: Vec<(Vec<usize>, Arc<Bitmap>)>,
-}
-
-impl CutCache {
-    pub fn union(&mut self, bitmaps: &[&Arc<Bitmap>]) -> Result<Arc<Bitmap>> {
-        let key: Vec<usize> = bitmaps.iter().map(|b| Arc::as_ptr(b) as usize).collect();
-        if let Some((_, b)) = self.entries.iter().find(|(k, _)| *k == key) {
-            return Ok(b.clone());
-        }
-        let mut c = bitmaps[0].as_ref().clone();
-        for b in &bitmaps[1..] {
-            c.union_with(b)?;
-        }
-        let c = Arc::new(c);
-        if self.entries.len() > 16 {
-            self.entries.remove(0);
-        }
-        self.entries.push((key, c.clone()));
-        Ok(c)
-    }
-}
-
 /// The scene of `state` with `previews` applied, and the overlay: the
-/// selected object drawn as its own tinted layer (split out of its field's
-/// layer when it sits in place, which leaves the image unchanged), the
-/// others dimmed on request.
+/// selected object tinted, the others dimmed on request. An object that
+/// sits in place inside its field's layer is tinted there through a
+/// highlight mask, so selecting it adds no layer to march.
 pub fn build_scene(
     state: &State,
     previews: &[Preview],
     selected: Option<&str>,
     mode: OverlayMode,
-    cuts: &mut CutCache,
-) -> Result<(Scene, Vec<Overlay>)> {
+) -> (Scene, Vec<Overlay>) {
     let mut st = state.clone();
     for p in previews {
         if let Some(o) = st.objects.iter_mut().find(|o| o.name == p.object) {
@@ -109,43 +81,30 @@ pub fn build_scene(
             o.color_edit = Some(p.color_edit).filter(|e| !e.is_identity());
         }
     }
-    let (mut scene, probes) = scene_of(&st);
+    let (scene, probes) = scene_of(&st);
     let mut overlay = vec![Overlay::default(); scene.layers.len()];
     let sel = selected.and_then(|name| {
         let i = st.objects.iter().position(|o| o.name == name)?;
         Some((i, probes.get(i)?.clone()?))
     });
     let mut highlighted = None;
-    if let Some((i, probe)) = sel.filter(|_| mode.tint_selected || mode.dim_others) {
+    if let Some((_, probe)) = sel.filter(|_| mode.tint_selected || mode.dim_others) {
+        // Detached objects (moved, recoloured, ...) have a Keep layer of
+        // their own; one in place is the highlight mask of its field's.
         let own = matches!(&scene.layers[probe.layer].mask, Mask::Keep(m) if Arc::ptr_eq(m, &probe.mask));
-        if own {
-            highlighted = Some(probe.layer);
-        } else {
-            // Split the object out of its field's layer (exact at identity).
-            let fl = &scene.layers[probe.layer];
-            let cut = match &fl.mask {
-                Mask::Remove(c) => cuts.union(&[c, &probe.mask])?,
-                _ => probe.mask.clone(),
-            };
-            let part = Layer {
-                field: fl.field.clone(),
-                to_world: fl.to_world,
-                mask: Mask::Keep(probe.mask.clone()),
-                color_edit: st.objects[i].color_edit,
-            };
-            scene.layers[probe.layer].mask = Mask::Remove(cut);
-            scene.layers.push(part);
-            overlay.push(Overlay::default());
-            highlighted = Some(scene.layers.len() - 1);
+        if !own {
+            overlay[probe.layer].highlight_mask = Some(probe.mask.clone());
         }
+        highlighted = Some(probe.layer);
     }
     if let Some(h) = highlighted {
         for (k, o) in overlay.iter_mut().enumerate() {
+            // (With a highlight mask, a layer holds the object and the rest.)
             o.highlight = k == h && mode.tint_selected;
-            o.dim = k != h && mode.dim_others;
+            o.dim = (k != h || o.highlight_mask.is_some()) && mode.dim_others;
         }
     }
-    Ok((scene, overlay))
+    (scene, overlay)
 }
 
 #[cfg(test)]
@@ -187,27 +146,20 @@ mod tests {
     }
 
     #[test]
-    fn selecting_an_in_place_object_splits_it_out_exactly() {
+    fn an_in_place_selection_is_a_highlight_mask_on_its_field_layer() {
         let st = state();
         let mode = OverlayMode {
             tint_selected: true,
-            dim_others: false,
+            dim_others: true,
         };
-        let mut cuts = CutCache::default();
-        let (plain, _) = build_scene(&st, &[], None, mode, &mut cuts).unwrap();
+        let (plain, ov) = build_scene(&st, &[], None, mode);
         assert_eq!(plain.layers.len(), 1, "an untouched object stays in its field");
-        let (scene, ov) = build_scene(&st, &[], Some("o"), mode, &mut cuts).unwrap();
-        assert_eq!(scene.layers.len(), 2);
-        assert!(matches!(&scene.layers[0].mask, Mask::Remove(c) if c.get(40) && c.count() == 1));
-        assert!(matches!(&scene.layers[1].mask, Mask::Keep(k) if k.get(40)));
-        assert!(ov[1].highlight && !ov[0].highlight);
-        // Same cut again: the cached Arc is reused.
-        let (again, _) = build_scene(&st, &[], Some("o"), mode, &mut cuts).unwrap();
-        let ptr = |s: &Scene| match &s.layers[0].mask {
-            Mask::Remove(c) => Arc::as_ptr(c),
-            _ => std::ptr::null(),
-        };
-        assert_eq!(ptr(&scene), ptr(&again));
+        assert_eq!(ov, vec![Overlay::default()]);
+        let (scene, ov) = build_scene(&st, &[], Some("o"), mode);
+        assert_eq!(scene.layers.len(), 1, "still one layer to march");
+        assert!(matches!(scene.layers[0].mask, Mask::All));
+        assert!(ov[0].highlight && ov[0].dim, "object tinted, the rest dimmed");
+        assert!(Arc::ptr_eq(ov[0].highlight_mask.as_ref().unwrap(), &st.objects[0].mask));
     }
 
     #[test]
@@ -218,7 +170,7 @@ mod tests {
             transform: Affine3A::from_translation(Vec3::X),
             color_edit: ColorEdit::default(),
         };
-        let (scene, _) = build_scene(&st, &[p], None, OverlayMode::default(), &mut CutCache::default()).unwrap();
+        let (scene, _) = build_scene(&st, &[p], None, OverlayMode::default());
         assert_eq!(scene.layers.len(), 2);
         assert_eq!(scene.layers[1].to_world, Affine3A::from_translation(Vec3::X));
     }

@@ -242,7 +242,7 @@ fn stroke_to_visible(
     object: &str,
     view: &isrf::camera::Camera,
 ) -> Result<()> {
-    use isrf::app::layers::{build_scene, CutCache, OverlayMode};
+    use isrf::app::layers::{build_scene, OverlayMode};
     use isrf::command::{Command, FieldSource, Session, StrokeSource};
     use std::sync::Arc;
     use std::time::Instant;
@@ -259,13 +259,12 @@ fn stroke_to_visible(
     })?;
     // As in the editor after loading: features cached, the field on the GPU.
     s.state.fields[0].field.feature_cache()?;
-    let mut cuts = CutCache::default();
     let mode = OverlayMode {
         tint_selected: true,
         dim_others: false,
     };
-    let mut show = |r: &mut isrf::app::headless::HeadlessRenderer, s: &Session, selected: Option<&str>| -> Result<()> {
-        let (scene, overlay) = build_scene(&s.state, &[], selected, mode, &mut cuts)?;
+    let show = |r: &mut isrf::app::headless::HeadlessRenderer, s: &Session, selected: Option<&str>| -> Result<()> {
+        let (scene, overlay) = build_scene(&s.state, &[], selected, mode);
         r.set_scene(Arc::new(scene));
         r.set_overlay(overlay);
         r.wait_drawn()?;

@@ -4,8 +4,8 @@
 //! resolution while the view moves.
 
 use super::state::{EditorState, MovingResolution, Tool};
-use crate::app::gpu::{MarchScene, RayMarchCamera};
 use crate::app::convert::{bevy_transform, projection_for};
+use crate::app::gpu::{MarchScene, RayMarchCamera};
 use crate::camera::Camera as IsrfCamera;
 use bevy::camera::Projection;
 use bevy::input::mouse::AccumulatedMouseMotion;
@@ -117,7 +117,10 @@ pub fn adaptive_resolution(
     let Ok((t, cam, mut rm)) = cams.single_mut() else {
         return;
     };
-    let viewport = cam.viewport.as_ref().map(|v| v.physical_position.extend(v.physical_size.x).extend(v.physical_size.y));
+    let viewport = cam
+        .viewport
+        .as_ref()
+        .map(|v| v.physical_position.extend(v.physical_size.x).extend(v.physical_size.y));
     let pose = (t.to_matrix(), viewport);
     let changed = march.is_changed() || last.as_ref() != Some(&pose);
     *last = Some(pose);

@@ -19,7 +19,7 @@ pub mod ui;
 
 use crate::app::convert::{bevy_transform, from_bevy_transform, projection_for, to_bevy_vec3};
 use crate::app::gpu::{MarchScene, RayMarchCamera, RayMarchPlugin};
-use crate::app::layers::{build_scene, CutCache, FieldLayer, ObjectLayer, OverlayMode, Preview, Selected, SessionName};
+use crate::app::layers::{build_scene, FieldLayer, ObjectLayer, OverlayMode, Preview, Selected, SessionName};
 use crate::camera::Camera as IsrfCamera;
 use crate::command::{Command, FieldSource, Session, StrokeSource};
 use crate::segment::stroke::StrokeDoc;
@@ -206,7 +206,6 @@ pub fn spawn_camera(mut commands: Commands) {
 /// or the overlay settings change.
 #[derive(Resource, Default)]
 pub struct SceneSync {
-    cuts: CutCache,
     /// What the current scene was built from (rebuild only when it differs:
     /// egui's `&mut` bindings mark resources and components changed every
     /// frame, and a scene per frame would never finish drawing).
@@ -301,7 +300,7 @@ fn scene_inputs(
 pub fn sync_scene(
     mut sync: ResMut<SceneSync>,
     mut march: ResMut<MarchScene>,
-    mut state: ResMut<EditorState>,
+    state: Res<EditorState>,
     es: Res<EditorSession>,
     objects: Query<(&SessionName, &ObjectLayer, &Transform, Has<Selected>)>,
     fields: Query<(&SessionName, &FieldLayer, Has<Selected>)>,
@@ -314,22 +313,12 @@ pub fn sync_scene(
     }
     let mut st = es.state.clone();
     st.background = inputs.background;
-    match build_scene(
-        &st,
-        &inputs.previews,
-        inputs.selected.as_deref(),
-        inputs.mode,
-        &mut sync.cuts,
-    ) {
-        Ok((scene, overlay)) => {
-            let step = (!scene.layers.is_empty()).then(|| scene.default_step() * inputs.step_scale);
-            march.scene = Some(Arc::new(scene));
-            march.overlay = overlay;
-            march.step = step;
-            sync.builds += 1;
-        }
-        Err(e) => state.error(e),
-    }
+    let (scene, overlay) = build_scene(&st, &inputs.previews, inputs.selected.as_deref(), inputs.mode);
+    let step = (!scene.layers.is_empty()).then(|| scene.default_step() * inputs.step_scale);
+    march.scene = Some(Arc::new(scene));
+    march.overlay = overlay;
+    march.step = step;
+    sync.builds += 1;
     sync.built_from = Some(inputs);
 }
 

@@ -611,7 +611,12 @@ fn view_panel(ui: &mut egui::Ui, state: &mut EditorState, snap: &mut Option<usiz
         (MovingResolution::Half, "½"),
     ];
     egui::ComboBox::from_label("resolution while moving")
-        .selected_text(labels.iter().find(|l| l.0 == state.moving_resolution).map_or("", |l| l.1))
+        .selected_text(
+            labels
+                .iter()
+                .find(|l| l.0 == state.moving_resolution)
+                .map_or("", |l| l.1),
+        )
         .show_ui(ui, |ui| {
             for (mode, label) in labels {
                 ui.selectable_value(&mut state.moving_resolution, mode, label);

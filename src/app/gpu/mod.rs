@@ -153,7 +153,10 @@ impl Plugin for RayMarchPlugin {
             return;
         };
         render_app
-            .insert_resource(RayMarchShaders { march: shader, composite })
+            .insert_resource(RayMarchShaders {
+                march: shader,
+                composite,
+            })
             .insert_resource(status)
             .init_resource::<GpuSceneCache>()
             .init_resource::<SpecializedRenderPipelines<RayMarchPipeline>>()
@@ -228,10 +231,18 @@ fn layer_bound(layers: usize) -> u32 {
     }
 }
 
+/// What a march pipeline is specialised for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+struct MarchKey {
+    /// [`layer_bound`] of the layer count.
+    bound: u32,
+    /// Some layer has a highlight mask (shader def `HIGHLIGHT`).
+    highlight: bool,
+}
+
 impl SpecializedRenderPipeline for RayMarchPipeline {
-    /// The layer bound ([`layer_bound`]).
-    type Key = u32;
-    fn specialize(&self, bound: Self::Key) -> RenderPipelineDescriptor {
+    type Key = MarchKey;
+    fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
         let target = |format| {
             Some(ColorTargetState {
                 format,
@@ -245,7 +256,10 @@ impl SpecializedRenderPipeline for RayMarchPipeline {
             vertex: self.fullscreen.to_vertex_state(),
             fragment: Some(FragmentState {
                 shader: self.shader.clone(),
-                shader_defs: vec![ShaderDefVal::UInt("MAX_LAYERS".into(), bound)],
+                shader_defs: [ShaderDefVal::UInt("MAX_LAYERS".into(), key.bound)]
+                    .into_iter()
+                    .chain(key.highlight.then(|| "HIGHLIGHT".into()))
+                    .collect(),
                 entry_point: Some("fragment".into()),
                 targets: vec![target(MARCH_COLOR_FORMAT), target(MARCH_DEPTH_FORMAT)],
             }),
@@ -283,7 +297,7 @@ struct GpuSceneCache {
 
 /// A storage buffer holding `data`, padded to a multiple of 16 bytes and to
 /// at least 256: empty bindings are not allowed, and a runtime-sized array
-/// binding must hold one element (`Layer` is 144 bytes) even when the scene
+/// binding must hold one element (`Layer` is 160 bytes) even when the scene
 /// is empty.
 fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> Buffer {
     let mut bytes = data.to_vec();
@@ -419,7 +433,7 @@ fn update_cache(
 ) -> crate::Result<()> {
     let wanted = pack::distinct_fields(scene);
     update_fields(cache, &wanted, device, status)?;
-    let bitmaps = pack::distinct_bitmaps(scene);
+    let bitmaps = pack::distinct_bitmaps(scene, &march.overlay);
     let (offs, total) = pack::bitmap_offsets(&bitmaps);
     update_bitmaps(cache, bitmaps, &offs, total, device, queue, status);
     // Layers: small, repacked every frame.

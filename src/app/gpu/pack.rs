@@ -78,6 +78,9 @@ pub struct GpuLayer {
     /// or a keep-mask's bounding box grown by a voxel).
     pub box_min: [f32; 4],
     pub box_max: [f32; 4],
+    /// 1 + word offset of the highlight mask ([`Overlay::highlight_mask`]),
+    /// 0 for none; 0, 0, 0.
+    pub highlight: [u32; 4],
 }
 
 /// One field (storage buffer, array).
@@ -336,13 +339,16 @@ pub fn distinct_fields(scene: &Scene) -> Vec<Arc<Field>> {
 }
 
 /// Distinct mask bitmaps of a scene, in order of first use.
-pub fn distinct_bitmaps(scene: &Scene) -> Vec<Arc<Bitmap>> {
+pub fn distinct_bitmaps(scene: &Scene, overlay: &[Overlay]) -> Vec<Arc<Bitmap>> {
+    let masks = scene.layers.iter().filter_map(|l| match &l.mask {
+        Mask::Keep(b) | Mask::Remove(b) => Some(b),
+        Mask::All => None,
+    });
+    let highlights = overlay.iter().filter_map(|o| o.highlight_mask.as_ref());
     let mut out: Vec<Arc<Bitmap>> = Vec::new();
-    for l in &scene.layers {
-        if let Mask::Keep(b) | Mask::Remove(b) = &l.mask {
-            if !out.iter().any(|x| Arc::ptr_eq(x, b)) {
-                out.push(b.clone());
-            }
+    for b in masks.chain(highlights) {
+        if !out.iter().any(|x| Arc::ptr_eq(x, b)) {
+            out.push(b.clone());
         }
     }
     out
@@ -366,10 +372,19 @@ pub fn bitmap_u32(b: &Bitmap) -> Vec<u32> {
 }
 
 /// Editor overlay per layer.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct Overlay {
+    /// Tint the layer (the selected object); only its part inside
+    /// `highlight_mask` when there is one.
     pub highlight: bool,
+    /// Dim the layer; only its part outside `highlight_mask` when there is
+    /// one.
     pub dim: bool,
+    /// The selected object when it sits in place inside this layer: the
+    /// shader splits the colour by the object's share of the density, which
+    /// draws the same image as splitting the object out into a layer of its
+    /// own, for the price of one layer.
+    pub highlight_mask: Option<Arc<Bitmap>>,
 }
 
 /// Packs the layers: `fields` and `bitmaps` are the lists from
@@ -422,7 +437,23 @@ pub fn pack_layers(
             e.validate()?;
         }
         let e = edit.unwrap_or_default();
-        let ov = overlay.get(i).copied().unwrap_or_default();
+        let ov = overlay.get(i).cloned().unwrap_or_default();
+        let highlight = match &ov.highlight_mask {
+            None => 0,
+            Some(h) => {
+                ensure!(
+                    h.res() == l.field.res(),
+                    "layer {i}: highlight mask resolution {:?} differs from the field's {:?}",
+                    h.res(),
+                    l.field.res()
+                );
+                let k = bitmaps
+                    .iter()
+                    .position(|x| Arc::ptr_eq(x, h))
+                    .ok_or_else(|| crate::Error::invalid(format!("layer {i}: its highlight mask was not uploaded")))?;
+                bitmap_offs[k] + 1
+            }
+        };
         let flag = |on: bool, bit: u32| if on { bit } else { 0 };
         let flags =
             flag(edit.is_some(), LAYER_COLOR_EDIT) | flag(ov.highlight, LAYER_HIGHLIGHT) | flag(ov.dim, LAYER_DIM);
@@ -433,6 +464,7 @@ pub fn pack_layers(
             sat_bright: [e.saturation, e.brightness, 0.0, 0.0],
             box_min: v4(lo, 0.0),
             box_max: v4(hi, 0.0),
+            highlight: [highlight, 0, 0, 0],
         });
     }
     ensure!(
@@ -600,7 +632,7 @@ mod tests {
         let scene = Scene::new(vec![removed, moved, nothing]);
         let fields = distinct_fields(&scene);
         assert_eq!(fields.len(), 1);
-        let bms = distinct_bitmaps(&scene);
+        let bms = distinct_bitmaps(&scene, &[]);
         assert_eq!(bms.len(), 2);
         let (offs, total) = bitmap_offsets(&bms);
         assert_eq!(offs, vec![0, (bits.words().len() * 2) as u32]);

@@ -10,8 +10,8 @@
 
 use super::pack::GpuView;
 use super::{
-    layer_bound, GpuSceneCache, RayMarchCamera, RayMarchPipeline, RayMarchShaders, SharedStatus, MARCH_COLOR_FORMAT,
-    MARCH_DEPTH_FORMAT,
+    layer_bound, GpuSceneCache, MarchKey, RayMarchCamera, RayMarchPipeline, RayMarchShaders, SharedStatus,
+    MARCH_COLOR_FORMAT, MARCH_DEPTH_FORMAT,
 };
 use bevy::core_pipeline::FullscreenShader;
 use bevy::prelude::*;
@@ -20,10 +20,10 @@ use bevy::render::render_resource::binding_types::{sampler, texture_2d};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, BufferInitDescriptor, BufferUsages,
     CachedPipelineState, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction, DepthStencilState,
-    Extent3d, FilterMode, FragmentState, LoadOp, MultisampleState, Operations, PipelineCache, RenderPassColorAttachment,
-    RenderPassDescriptor, RenderPipelineDescriptor, Sampler, SamplerBindingType, SamplerDescriptor, ShaderStages,
-    SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureDescriptor, TextureDimension, TextureFormat,
-    TextureSampleType, TextureUsages, TextureView,
+    Extent3d, FilterMode, FragmentState, LoadOp, MultisampleState, Operations, PipelineCache,
+    RenderPassColorAttachment, RenderPassDescriptor, RenderPipelineDescriptor, Sampler, SamplerBindingType,
+    SamplerDescriptor, ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureDescriptor,
+    TextureDimension, TextureFormat, TextureSampleType, TextureUsages, TextureView,
 };
 use bevy::render::renderer::{RenderContext, RenderDevice, ViewQuery};
 use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
@@ -143,7 +143,12 @@ fn march_texture(device: &RenderDevice, label: &'static str, size: UVec2, format
         .create_view(&default())
 }
 
-fn new_targets(device: &RenderDevice, cache: &PipelineCache, composite: &CompositePipeline, size: UVec2) -> MarchTargets {
+fn new_targets(
+    device: &RenderDevice,
+    cache: &PipelineCache,
+    composite: &CompositePipeline,
+    size: UVec2,
+) -> MarchTargets {
     let color = march_texture(device, "isrf_march_color", size, MARCH_COLOR_FORMAT);
     let depth = march_texture(device, "isrf_march_depth", size, MARCH_DEPTH_FORMAT);
     let bind_group = device.create_bind_group(
@@ -162,7 +167,11 @@ fn new_targets(device: &RenderDevice, cache: &PipelineCache, composite: &Composi
 
 /// The march's pixel size for a viewport: `scale` of each side, at least 1.
 pub(super) fn march_size(viewport: UVec2, scale: f32) -> UVec2 {
-    let s = if scale.is_finite() { scale.clamp(0.125, 1.0) } else { 1.0 };
+    let s = if scale.is_finite() {
+        scale.clamp(0.125, 1.0)
+    } else {
+        1.0
+    };
     (viewport.as_vec2() * s).round().as_uvec2().max(UVec2::ONE)
 }
 
@@ -273,19 +282,25 @@ pub(super) fn prepare_views(
             commands.entity(entity).remove::<ViewDraw>();
             continue;
         }
-        let bound = layer_bound(cache.layers.len());
-        let march_id = specialized.0.specialize(&pipeline_cache, &march_pipeline, bound);
-        // Compile the one- and two-layer variants up front, so that moving
+        let variant = MarchKey {
+            bound: layer_bound(cache.layers.len()),
+            highlight: cache.layers.iter().any(|l| l.highlight[0] != 0),
+        };
+        let march_id = specialized.0.specialize(&pipeline_cache, &march_pipeline, variant);
+        // Compile the common variants up front, so that selecting or moving
         // the first object never waits for a pipeline.
-        for b in [1, 2] {
-            specialized.0.specialize(&pipeline_cache, &march_pipeline, b);
+        for (bound, highlight) in [(1, false), (1, true), (2, false)] {
+            specialized
+                .0
+                .specialize(&pipeline_cache, &march_pipeline, MarchKey { bound, highlight });
         }
         let samples = msaa.map_or(1, |m| m.samples());
-        let composite_id = specialized
-            .1
-            .specialize(&pipeline_cache, &composite_pipeline, (view.target_format, samples));
-        let ready = pipeline_ready(&pipeline_cache, march_id, &status)
-            & pipeline_ready(&pipeline_cache, composite_id, &status);
+        let composite_id =
+            specialized
+                .1
+                .specialize(&pipeline_cache, &composite_pipeline, (view.target_format, samples));
+        let ready =
+            pipeline_ready(&pipeline_cache, march_id, &status) & pipeline_ready(&pipeline_cache, composite_id, &status);
         if !ready {
             commands.entity(entity).remove::<ViewDraw>();
             continue;
