@@ -232,6 +232,41 @@ mod tests {
     }
 
     #[test]
+    fn the_view_marches_at_half_resolution_while_the_camera_keeps_moving() {
+        use bevy::platform::time::Instant;
+        use std::time::Duration;
+        let start = Instant::now();
+        let mut app = App::new();
+        let mut state = EditorState::default();
+        state.moving_resolution = MovingResolution::Half;
+        app.insert_resource(state)
+            .init_resource::<MarchScene>()
+            .insert_resource(Time::<Real>::new(start))
+            .add_systems(Update, adaptive_resolution);
+        let cam = app
+            .world_mut()
+            .spawn((GlobalTransform::IDENTITY, Camera::default(), RayMarchCamera::default(), EditorCamera))
+            .id();
+        let mut frame = |app: &mut App, ms: u64, x: Option<f32>| -> f32 {
+            app.world_mut()
+                .resource_mut::<Time<Real>>()
+                .update_with_instant(start + Duration::from_millis(ms));
+            if let Some(x) = x {
+                *app.world_mut().get_mut::<GlobalTransform>(cam).unwrap() =
+                    GlobalTransform::from_translation(Vec3::X * x);
+            }
+            app.update();
+            app.world().get::<RayMarchCamera>(cam).unwrap().render_scale
+        };
+        assert_eq!(frame(&mut app, 0, None), 1.0, "first frame: full");
+        assert_eq!(frame(&mut app, 500, Some(0.1)), 1.0, "one change: full");
+        assert_eq!(frame(&mut app, 600, Some(0.2)), 0.5, "moving: half");
+        assert_eq!(frame(&mut app, 700, Some(0.3)), 0.5);
+        assert_eq!(frame(&mut app, 800, None), 0.5, "just stopped");
+        assert_eq!(frame(&mut app, 1100, None), 1.0, "at rest: full again");
+    }
+
+    #[test]
     fn half_resolution_only_while_moving_and_where_the_mode_wants_it() {
         use MovingResolution::*;
         assert_eq!(moving_scale(Auto, true, true), 0.5);
