@@ -103,6 +103,9 @@ pub struct RenderStatus {
     pub marches: u64,
     /// Pointer identity of the scene the last drawn frame showed.
     pub scene_drawn: usize,
+    /// Whether the last drawn frame showed a full-resolution march (not
+    /// the upsampled one of a moving view).
+    pub full_resolution: bool,
     /// Last upload or packing error (shown in the UI).
     pub error: Option<String>,
     /// Milliseconds spent uploading grids, last time any were uploaded.

@@ -122,6 +122,8 @@ pub(super) struct ViewDraw {
     march: Option<(BindGroup, CachedRenderPipelineId)>,
     composite: CachedRenderPipelineId,
     scene_ptr: usize,
+    /// The textures hold a march at the viewport's full size.
+    full: bool,
 }
 
 fn march_texture(device: &RenderDevice, label: &'static str, size: UVec2, format: TextureFormat) -> TextureView {
@@ -328,6 +330,7 @@ pub(super) fn prepare_views(
                 march,
                 composite: composite_id,
                 scene_ptr: cache.scene_ptr,
+                full: size == UVec2::new(view.viewport.z, view.viewport.w),
             },
         ));
     }
@@ -394,11 +397,12 @@ pub(super) fn raymarch_pass(
     pass.set_render_pipeline(composite);
     pass.set_bind_group(0, &targets.composite, &[]);
     pass.draw(0..3, 0..1);
-    let (ptr, marched) = (draw.scene_ptr, draw.march.is_some() as u64);
+    let (ptr, marched, full) = (draw.scene_ptr, draw.march.is_some() as u64, draw.full);
     status.update(|s| {
         s.frames_drawn += 1;
         s.marches += marched;
         s.scene_drawn = ptr;
+        s.full_resolution = full;
     });
 }
 
