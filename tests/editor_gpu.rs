@@ -60,6 +60,13 @@ fn demo() -> (isrf::demo::DemoScene, Camera) {
     (d, cam)
 }
 
+/// The demo field, the mug's bitmap and the camera.
+fn demo_mug() -> (Arc<Field>, Arc<isrf::field::Bitmap>, Camera) {
+    let (d, cam) = demo();
+    let mug = Arc::new(d.labels.mask(d.labels.label_of("mug").unwrap()));
+    (Arc::new(d.field), mug, cam)
+}
+
 #[test]
 fn gpu_matches_cpu_on_the_tabletop_and_a_composition() {
     if skip() {
@@ -202,9 +209,7 @@ fn a_removed_object_leaves_no_shell_on_the_gpu() {
     if skip() {
         return;
     }
-    let (d, cam) = demo();
-    let field = Arc::new(d.field);
-    let mug = Arc::new(d.labels.mask(d.labels.label_of("mug").unwrap()));
+    let (field, mug, cam) = demo_mug();
     let mut removed = Layer::new(field.clone());
     removed.mask = Mask::Remove(mug.clone());
     let scene = Scene::new(vec![removed]);
@@ -317,9 +322,7 @@ fn an_in_place_selection_tints_like_a_split_into_two_layers() {
     if skip() {
         return;
     }
-    let (d, cam) = demo();
-    let field = Arc::new(d.field);
-    let mug = Arc::new(d.labels.mask(d.labels.label_of("mug").unwrap()));
+    let (field, mug, cam) = demo_mug();
     let mut r = HeadlessRenderer::new(W, H).unwrap();
     let plain = r.render(Arc::new(Scene::single(field.clone())), &cam).unwrap();
 

@@ -237,17 +237,24 @@ mod tests {
         use std::time::Duration;
         let start = Instant::now();
         let mut app = App::new();
-        let mut state = EditorState::default();
-        state.moving_resolution = MovingResolution::Half;
+        let state = EditorState {
+            moving_resolution: MovingResolution::Half,
+            ..Default::default()
+        };
         app.insert_resource(state)
             .init_resource::<MarchScene>()
             .insert_resource(Time::<Real>::new(start))
             .add_systems(Update, adaptive_resolution);
         let cam = app
             .world_mut()
-            .spawn((GlobalTransform::IDENTITY, Camera::default(), RayMarchCamera::default(), EditorCamera))
+            .spawn((
+                GlobalTransform::IDENTITY,
+                Camera::default(),
+                RayMarchCamera::default(),
+                EditorCamera,
+            ))
             .id();
-        let mut frame = |app: &mut App, ms: u64, x: Option<f32>| -> f32 {
+        let frame = |app: &mut App, ms: u64, x: Option<f32>| -> f32 {
             app.world_mut()
                 .resource_mut::<Time<Real>>()
                 .update_with_instant(start + Duration::from_millis(ms));

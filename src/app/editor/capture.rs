@@ -54,9 +54,10 @@ impl Plugin for ScreenshotPlugin {
 /// resolution (a moving view marches at less; it rests before a screenshot).
 pub fn scene_drawn(march: &MarchScene, status: &SharedStatus) -> bool {
     let s = status.get();
-    march.scene.as_ref().is_some_and(|sc| {
-        s.frames_drawn > 0 && s.full_resolution && s.scene_drawn == Arc::as_ptr(sc) as usize
-    })
+    march
+        .scene
+        .as_ref()
+        .is_some_and(|sc| s.frames_drawn > 0 && s.full_resolution && s.scene_drawn == Arc::as_ptr(sc) as usize)
 }
 
 #[allow(clippy::too_many_arguments)]

@@ -256,16 +256,23 @@ fn pipeline_ready(cache: &PipelineCache, id: CachedRenderPipelineId, status: &Sh
     false
 }
 
+/// The views to draw, with their march textures once they have some.
+type Views<'w, 's> = Query<
+    'w,
+    's,
+    (
+        Entity,
+        &'static ExtractedView,
+        &'static RayMarchCamera,
+        Option<&'static Msaa>,
+        Option<&'static MarchTargets>,
+    ),
+>;
+
 #[allow(clippy::too_many_arguments)]
 pub(super) fn prepare_views(
     mut commands: Commands,
-    views: Query<(
-        Entity,
-        &ExtractedView,
-        &RayMarchCamera,
-        Option<&Msaa>,
-        Option<&MarchTargets>,
-    )>,
+    views: Views,
     cache: Res<GpuSceneCache>,
     pipelines: (Option<Res<RayMarchPipeline>>, Option<Res<CompositePipeline>>),
     mut specialized: (
