@@ -165,7 +165,9 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     println!("{:<28} {:>10.1} {:>10.2}", "field, still view", 1e3 / still, still);
     r.set_step(None);
     if let Some(object) = &stroke_object {
-        stroke_to_visible(&mut r, &a, object, &views[0])?;
+        stroke_to_visible(&mut r, &a, object, &views[0], 1.0)?;
+        // The editor's first image of a change on a software GPU.
+        stroke_to_visible(&mut r, &a, object, &views[0], 0.5)?;
     }
     println!("fps while moving (½ resolution, the editor's default on software GPUs): {moving_fps:.2}");
     println!("fps: {full_fps:.2}");
@@ -234,13 +236,14 @@ fn time_frames(
 /// Times a demo stroke as the editor runs it: the session's `Stroke`
 /// command (features, k-means, NNFM, growth), the scene rebuild with the new
 /// object selected and tinted, the mask upload and the first GPU frame that
-/// shows it.
+/// shows it, marched at `scale` of each side.
 #[cfg(feature = "editor")]
 fn stroke_to_visible(
     r: &mut isrf::app::headless::HeadlessRenderer,
     a: &BenchArgs,
     object: &str,
     view: &isrf::camera::Camera,
+    scale: f32,
 ) -> Result<()> {
     use isrf::app::layers::{build_scene, OverlayMode};
     use isrf::command::{Command, FieldSource, Session, StrokeSource};
@@ -270,6 +273,7 @@ fn stroke_to_visible(
         r.wait_drawn()?;
         Ok(())
     };
+    r.set_render_scale(scale);
     r.set_camera(view)?;
     show(r, &s, None)?;
     let marches = r.frame_counts().1;
@@ -286,10 +290,12 @@ fn stroke_to_visible(
     show(r, &s, Some(object))?;
     let total = t0.elapsed().as_secs_f64() * 1e3;
     anyhow::ensure!(r.frame_counts().1 > marches, "the stroke's result was never marched");
+    let res = if scale < 1.0 { " (½ res image)" } else { "" };
     println!(
-        "stroke -> visible: {total:.0} ms (segmentation {seg:.0} ms, scene + mask upload + frame {:.0} ms)",
+        "stroke -> visible{res}: {total:.0} ms (segmentation {seg:.0} ms, scene + mask upload + frame {:.0} ms)",
         total - seg
     );
+    r.set_render_scale(1.0);
     Ok(())
 }
 
