@@ -672,10 +672,6 @@ fn status_line(
             ui.separator();
             ui.label(format!("GPU upload {:.0} ms", gpu.upload_ms));
         }
-        if gpu.frames_drawn > 0 && !gpu.full_resolution {
-            ui.separator();
-            ui.label("view: ½ resolution while moving");
-        }
     });
     if let Some(e) = &gpu.error {
         ui.colored_label(egui::Color32::RED, format!("GPU view: {e}"));
