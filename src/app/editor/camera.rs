@@ -95,31 +95,26 @@ pub fn moving_scale(mode: MovingResolution, software_gpu: bool, moving: bool) ->
     }
 }
 
-/// What the view shows besides the scene: pose and viewport.
-type ViewPose = (Mat4, Option<UVec4>);
-
 /// Marches at a lower resolution while the view moves (camera, drags,
 /// anything that rebuilds the scene every frame), in full once it rests.
-#[allow(clippy::type_complexity)]
+/// A viewport resize alone is no motion: the panels around the view may
+/// change size with what they show, and counting that would let the
+/// resolution feed back into itself.
 pub fn adaptive_resolution(
     time: Res<Time<Real>>,
     state: Res<EditorState>,
     march: Res<MarchScene>,
     adapter: Option<Res<bevy::render::renderer::RenderAdapterInfo>>,
     mut clock: Local<MotionClock>,
-    mut last: Local<Option<ViewPose>>,
-    mut cams: Query<(&GlobalTransform, &Camera, &mut RayMarchCamera), With<EditorCamera>>,
+    mut last_pose: Local<Option<Mat4>>,
+    mut cams: Query<(&GlobalTransform, &mut RayMarchCamera), With<EditorCamera>>,
 ) {
-    let Ok((t, cam, mut rm)) = cams.single_mut() else {
+    let Ok((t, mut rm)) = cams.single_mut() else {
         return;
     };
-    let viewport = cam
-        .viewport
-        .as_ref()
-        .map(|v| v.physical_position.extend(v.physical_size.x).extend(v.physical_size.y));
-    let pose = (t.to_matrix(), viewport);
-    let changed = march.is_changed() || last.as_ref() != Some(&pose);
-    *last = Some(pose);
+    let pose = t.to_matrix();
+    let changed = march.is_changed() || *last_pose != Some(pose);
+    *last_pose = Some(pose);
     let software = adapter.is_some_and(|a| a.device_type == wgpu::DeviceType::Cpu);
     let moving = clock.tick(time.elapsed_secs_f64(), changed);
     let scale = moving_scale(state.moving_resolution, software, moving);
