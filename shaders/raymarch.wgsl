@@ -1,5 +1,7 @@
 // isrf GPU ray marcher: the same function as the CPU reference renderer
-// (src/render/mod.rs), evaluated per pixel in a fullscreen fragment pass.
+// (src/render/mod.rs), evaluated per pixel in a fullscreen fragment pass
+// into the view's march textures (colour, depth), which composite.wgsl
+// draws into the view; src/app/gpu/view.rs decides when to march.
 //
 // Samples sit at fixed world distances t_i = (i + 1/2) * step along the unit
 // ray from the camera; at each sample the layers' (masked, activated)
