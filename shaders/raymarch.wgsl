@@ -109,7 +109,9 @@ var<private> finfo: array<FieldInfo, MAX_LAYERS>;
 var<private> linfo: array<vec4<u32>, MAX_LAYERS>;
 var<private> lbox_min: array<vec3<f32>, MAX_LAYERS>;
 var<private> lbox_max: array<vec3<f32>, MAX_LAYERS>;
+#ifdef HIGHLIGHT
 var<private> lhighlight: array<u32, MAX_LAYERS>;
+#endif
 
 fn cell_of(f: FieldInfo, p: vec3<f32>) -> Cell {
     var out: Cell;
@@ -533,7 +535,9 @@ fn fragment(@builtin(position) pos: vec4<f32>) -> MarchOutput {
         finfo[k] = fields[info.x];
         lbox_min[k] = layers[k].box_min.xyz;
         lbox_max[k] = layers[k].box_max.xyz;
+#ifdef HIGHLIGHT
         lhighlight[k] = layers[k].highlight.x;
+#endif
         let hit = intersect(lbox_min[k], lbox_max[k], o, d);
         if hit.y > hit.x {
             t0 = min(t0, hit.x);

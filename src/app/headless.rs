@@ -32,7 +32,6 @@ pub struct HeadlessRenderer {
     height: u32,
     camera: Entity,
     target: Handle<Image>,
-    render_scale: f32,
 }
 
 /// The plugins of a window-less app (no winit, no log capture, rendering
@@ -98,7 +97,6 @@ impl HeadlessRenderer {
             height,
             camera,
             target,
-            render_scale: 1.0,
         })
     }
 
@@ -132,21 +130,24 @@ impl HeadlessRenderer {
             "the GPU view does not render NDC (forward-facing) cameras yet"
         );
         let mut e = self.app.world_mut().entity_mut(self.camera);
+        let render_scale = e.get::<RayMarchCamera>().map_or(1.0, |c| c.render_scale);
         e.insert((
             bevy_transform(&camera.c2w),
             projection_for(&k),
             RayMarchCamera {
                 intrinsics: Some([k.fx, k.fy, k.cx, k.cy]),
-                render_scale: self.render_scale,
+                render_scale,
             },
         ));
         Ok(())
     }
 
     /// Fraction of each side the march renders (see
-    /// [`RayMarchCamera::render_scale`]); applies from the next `set_camera`.
+    /// [`RayMarchCamera::render_scale`]).
     pub fn set_render_scale(&mut self, scale: f32) {
-        self.render_scale = scale;
+        if let Some(mut c) = self.app.world_mut().get_mut::<RayMarchCamera>(self.camera) {
+            c.render_scale = scale;
+        }
     }
 
     /// Frames drawn and marches run so far (a still view draws without

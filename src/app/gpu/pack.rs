@@ -52,11 +52,11 @@ pub struct GpuView {
     pub c2w: [[f32; 4]; 4],
     /// World to clip space of the bevy camera (for the depth we write).
     pub clip_from_world: [[f32; 4]; 4],
-    /// fx, fy, cx, cy in pixels of the view.
+    /// fx, fy, cx, cy in pixels of the march target.
     pub intrinsics: [f32; 4],
     /// Background colour (rgb).
     pub background: [f32; 4],
-    /// step, min transmittance, viewport x offset, viewport y offset.
+    /// step, min transmittance, 0, 0.
     pub march: [f32; 4],
     /// layer count, 0, 0, 0.
     pub counts: [u32; 4],
@@ -398,6 +398,21 @@ pub fn pack_layers(
     bitmap_offs: &[u32],
     overlay: &[Overlay],
 ) -> Result<Vec<GpuLayer>> {
+    // Word offset of a layer's bitmap (`what`: "mask", "highlight mask").
+    let offset_of = |i: usize, what: &str, bits: &Arc<Bitmap>, field: &Field| -> Result<u32> {
+        ensure!(
+            bits.res() == field.res(),
+            "layer {i}: {what} resolution {:?} differs from the field's {:?}",
+            bits.res(),
+            field.res()
+        );
+        let k = bitmaps
+            .iter()
+            .position(|x| Arc::ptr_eq(x, bits))
+            .ok_or_else(|| crate::Error::invalid(format!("layer {i}: its {what} was not uploaded")))?;
+        Ok(bitmap_offs[k])
+    };
+    let no_overlay = Overlay::default();
     let mut out = Vec::with_capacity(scene.layers.len());
     for (i, l) in scene.layers.iter().enumerate() {
         let det = l.to_world.matrix3.determinant();
@@ -414,21 +429,15 @@ pub fn pack_layers(
         let (kind, offset) = match &l.mask {
             Mask::All => (MASK_ALL, 0),
             Mask::Keep(bits) | Mask::Remove(bits) => {
-                ensure!(
-                    bits.res() == l.field.res(),
-                    "layer {i}: mask resolution {:?} differs from the field's {:?}",
-                    bits.res(),
-                    l.field.res()
-                );
-                let k = bitmaps.iter().position(|x| Arc::ptr_eq(x, bits)).unwrap_or(0);
+                let offset = offset_of(i, "mask", bits, &l.field)?;
                 if matches!(l.mask, Mask::Keep(_)) {
                     let Some((a, z)) = keep_box(&l.field, bits) else {
                         continue;
                     };
                     (lo, hi) = (a, z);
-                    (MASK_KEEP, bitmap_offs[k])
+                    (MASK_KEEP, offset)
                 } else {
-                    (MASK_REMOVE, bitmap_offs[k])
+                    (MASK_REMOVE, offset)
                 }
             }
         };
@@ -437,22 +446,10 @@ pub fn pack_layers(
             e.validate()?;
         }
         let e = edit.unwrap_or_default();
-        let ov = overlay.get(i).cloned().unwrap_or_default();
+        let ov = overlay.get(i).unwrap_or(&no_overlay);
         let highlight = match &ov.highlight_mask {
             None => 0,
-            Some(h) => {
-                ensure!(
-                    h.res() == l.field.res(),
-                    "layer {i}: highlight mask resolution {:?} differs from the field's {:?}",
-                    h.res(),
-                    l.field.res()
-                );
-                let k = bitmaps
-                    .iter()
-                    .position(|x| Arc::ptr_eq(x, h))
-                    .ok_or_else(|| crate::Error::invalid(format!("layer {i}: its highlight mask was not uploaded")))?;
-                bitmap_offs[k] + 1
-            }
+            Some(h) => offset_of(i, "highlight mask", h, &l.field)? + 1,
         };
         let flag = |on: bool, bit: u32| if on { bit } else { 0 };
         let flags =

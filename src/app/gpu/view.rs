@@ -282,6 +282,7 @@ pub(super) fn prepare_views(
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
     status: Res<SharedStatus>,
+    mut prewarmed: Local<bool>,
 ) {
     let (Some(march_pipeline), Some(composite_pipeline)) = pipelines else {
         return;
@@ -296,18 +297,22 @@ pub(super) fn prepare_views(
             highlight: cache.layers.iter().any(|l| l.highlight[0] != 0),
         };
         let march_id = specialized.0.specialize(&pipeline_cache, &march_pipeline, variant);
-        // Compile the common variants up front, so that selecting or moving
-        // the first object never waits for a pipeline.
-        for (bound, highlight) in [(1, false), (1, true), (2, false)] {
-            specialized
-                .0
-                .specialize(&pipeline_cache, &march_pipeline, MarchKey { bound, highlight });
+        if !*prewarmed {
+            // Compile the common variants up front, so that selecting or
+            // moving the first object never waits for a pipeline.
+            for (bound, highlight) in [(1, false), (1, true), (2, false)] {
+                specialized
+                    .0
+                    .specialize(&pipeline_cache, &march_pipeline, MarchKey { bound, highlight });
+            }
+            *prewarmed = true;
         }
         let samples = msaa.map_or(1, |m| m.samples());
         let composite_id =
             specialized
                 .1
                 .specialize(&pipeline_cache, &composite_pipeline, (view.target_format, samples));
+        // (`&`, not `&&`: both report their compile errors.)
         let ready =
             pipeline_ready(&pipeline_cache, march_id, &status) & pipeline_ready(&pipeline_cache, composite_id, &status);
         if !ready {
