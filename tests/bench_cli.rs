@@ -19,19 +19,25 @@ fn last_line(s: &str) -> &str {
     s.lines().last().unwrap_or("")
 }
 
+/// The positive number the last line of `out` gives after `prefix`.
+fn last_number(out: &str, prefix: &str) -> f64 {
+    let line = last_line(out);
+    let n: f64 = line
+        .strip_prefix(prefix)
+        .unwrap_or_else(|| panic!("last line is not '{prefix}<number>': {line:?}"))
+        .parse()
+        .unwrap_or_else(|e| panic!("not a number in {line:?}: {e}"));
+    assert!(n.is_finite() && n > 0.0, "{line}");
+    n
+}
+
 #[test]
 fn bench_render_ends_with_rays_per_second() {
     let (ok, out, err) = isrf(&[
         "bench", "render", "--res", "24", "--width", "40", "--height", "30", "--frames", "1",
     ]);
     assert!(ok, "bench render failed: {err}\n{out}");
-    let line = last_line(&out);
-    let n: f64 = line
-        .strip_prefix("rays/s: ")
-        .unwrap_or_else(|| panic!("last line is not 'rays/s: <number>': {line:?}"))
-        .parse()
-        .unwrap_or_else(|e| panic!("not a number in {line:?}: {e}"));
-    assert!(n.is_finite() && n > 0.0, "{line}");
+    last_number(&out, "rays/s: ");
     assert!(out.contains("rayon threads"), "thread count missing:\n{out}");
     assert!(out.contains("24^3"), "resolution row missing:\n{out}");
 }
@@ -92,11 +98,5 @@ fn bench_editor_ends_with_fps() {
     ] {
         assert!(out.contains(row), "row {row:?} missing:\n{out}");
     }
-    let line = last_line(&out);
-    let n: f64 = line
-        .strip_prefix("fps: ")
-        .unwrap_or_else(|| panic!("last line is not 'fps: <number>': {line:?}"))
-        .parse()
-        .unwrap_or_else(|e| panic!("not a number in {line:?}: {e}"));
-    assert!(n.is_finite() && n > 0.0, "{line}");
+    last_number(&out, "fps: ");
 }

@@ -243,16 +243,18 @@ struct MarchKey {
     highlight: bool,
 }
 
+/// An opaque colour target of `format` (the passes overwrite every pixel).
+fn opaque_target(format: TextureFormat) -> Option<ColorTargetState> {
+    Some(ColorTargetState {
+        format,
+        blend: None,
+        write_mask: ColorWrites::ALL,
+    })
+}
+
 impl SpecializedRenderPipeline for RayMarchPipeline {
     type Key = MarchKey;
     fn specialize(&self, key: Self::Key) -> RenderPipelineDescriptor {
-        let target = |format| {
-            Some(ColorTargetState {
-                format,
-                blend: None,
-                write_mask: ColorWrites::ALL,
-            })
-        };
         RenderPipelineDescriptor {
             label: Some("isrf_raymarch_pipeline".into()),
             layout: vec![self.layout.clone()],
@@ -264,7 +266,7 @@ impl SpecializedRenderPipeline for RayMarchPipeline {
                     .chain(key.highlight.then(|| "HIGHLIGHT".into()))
                     .collect(),
                 entry_point: Some("fragment".into()),
-                targets: vec![target(MARCH_COLOR_FORMAT), target(MARCH_DEPTH_FORMAT)],
+                targets: vec![opaque_target(MARCH_COLOR_FORMAT), opaque_target(MARCH_DEPTH_FORMAT)],
             }),
             ..default()
         }

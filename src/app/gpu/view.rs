@@ -10,8 +10,8 @@
 
 use super::pack::GpuView;
 use super::{
-    layer_bound, GpuSceneCache, MarchKey, RayMarchCamera, RayMarchPipeline, RayMarchShaders, SharedStatus,
-    MARCH_COLOR_FORMAT, MARCH_DEPTH_FORMAT,
+    layer_bound, opaque_target, GpuSceneCache, MarchKey, RayMarchCamera, RayMarchPipeline, RayMarchShaders,
+    SharedStatus, MARCH_COLOR_FORMAT, MARCH_DEPTH_FORMAT,
 };
 use bevy::core_pipeline::FullscreenShader;
 use bevy::prelude::*;
@@ -19,11 +19,11 @@ use bevy::render::camera::ExtractedCamera;
 use bevy::render::render_resource::binding_types::{sampler, texture_2d};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, BufferInitDescriptor, BufferUsages,
-    CachedPipelineState, CachedRenderPipelineId, ColorTargetState, ColorWrites, CompareFunction, DepthStencilState,
-    Extent3d, FilterMode, FragmentState, LoadOp, MultisampleState, Operations, PipelineCache,
-    RenderPassColorAttachment, RenderPassDescriptor, RenderPipelineDescriptor, Sampler, SamplerBindingType,
-    SamplerDescriptor, ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureDescriptor,
-    TextureDimension, TextureFormat, TextureSampleType, TextureUsages, TextureView,
+    CachedPipelineState, CachedRenderPipelineId, CompareFunction, DepthStencilState, Extent3d, FilterMode,
+    FragmentState, LoadOp, MultisampleState, Operations, PipelineCache, RenderPassColorAttachment,
+    RenderPassDescriptor, RenderPipelineDescriptor, Sampler, SamplerBindingType, SamplerDescriptor, ShaderStages,
+    SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureDescriptor, TextureDimension, TextureFormat,
+    TextureSampleType, TextureUsages, TextureView,
 };
 use bevy::render::renderer::{RenderContext, RenderDevice, ViewQuery};
 use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
@@ -81,11 +81,7 @@ impl SpecializedRenderPipeline for CompositePipeline {
                 shader: self.shader.clone(),
                 shader_defs: vec![],
                 entry_point: Some("fragment".into()),
-                targets: vec![Some(ColorTargetState {
-                    format,
-                    blend: None,
-                    write_mask: ColorWrites::ALL,
-                })],
+                targets: vec![opaque_target(format)],
             }),
             depth_stencil: Some(DepthStencilState {
                 format: bevy::core_pipeline::core_3d::CORE_3D_DEPTH_FORMAT,
