@@ -72,7 +72,12 @@ struct FieldInfo {
 // src/app/gpu/pack.rs MAX_LAYERS): the per-layer loops run a constant
 // number of times, so that lavapipe unrolls them and keeps the per-layer
 // state below in registers (arrays indexed by a loop counter live in memory,
-// which doubles the frame time there).
+// which doubles the frame time there). It is also specialised on what the
+// scene uses (src/app/gpu/mod.rs `MarchKey`): shader defs RGB and / or SH
+// (colour kinds), MASKS, COLOR_EDIT, OVERLAY (tint / dim) and HIGHLIGHT
+// (a highlight mask); code a scene does not need is left out, as its mere
+// presence slows lavapipe's whole march (SH code cost a plain RGB field
+// 29 % of its frame, mask code 26 %).
 const MAX_LAYERS: u32 = #{MAX_LAYERS}u;
 const MAX_ITERATIONS: u32 = 1000000u;
 const INF: f32 = 3.0e38;
@@ -85,10 +90,14 @@ const LAYER_COLOR_EDIT: u32 = 1u;
 const LAYER_HIGHLIGHT: u32 = 2u;
 const LAYER_DIM: u32 = 4u;
 
-// Trilinear cell of a local point: flat index of the base corner,
-// fractions; `inside` false outside the grid (geom.rs `corners`).
+// Trilinear cell of a local point: where its base corner is in the
+// bricked grid arrays (density, colours) and its +x, +y, +z neighbours'
+// offsets from there, its linear index (mask bitmaps), fractions; `inside`
+// false outside the grid (geom.rs `corners`).
 struct Cell {
     base: u32,
+    step: vec3<u32>,
+    lin: u32,
     frac: vec3<f32>,
     inside: bool,
 };
@@ -120,14 +129,23 @@ fn cell_of(f: FieldInfo, p: vec3<f32>) -> Cell {
     out.inside = all(g >= vec3<f32>(0.0)) && all(g <= n);
     // Base corner clamped so that points on the upper face use the last cell.
     let b = min(vec3<u32>(max(g, vec3<f32>(0.0))), f.res.xyz - vec3<u32>(2u));
-    out.base = b.x + f.res.x * (b.y + f.res.y * b.z);
+    out.lin = b.x + f.res.x * (b.y + f.res.y * b.z);
+    // Bricked index (pack.rs `bricked_index`): 4³ bricks of 64 points, x
+    // fastest within and between bricks; a neighbour across a brick face
+    // is in the next brick along that axis.
+    let bricks = (f.res.xyz + vec3<u32>(3u)) >> vec3<u32>(2u);
+    let w = b & vec3<u32>(3u);
+    let bb = b >> vec3<u32>(2u);
+    out.base = ((bb.z * bricks.y + bb.y) * bricks.x + bb.x) * 64u + (w.z * 4u + w.y) * 4u + w.x;
+    let across = vec3<u32>(61u, 64u * bricks.x - 12u, 64u * bricks.x * bricks.y - 48u);
+    out.step = select(vec3<u32>(1u, 4u, 16u), across, w == vec3<u32>(3u));
     out.frac = g - vec3<f32>(b);
     return out;
 }
 
-// Flat offsets of the 8 corners from the base corner, in the CPU's order.
-fn corner(f: FieldInfo, k: u32) -> u32 {
-    return (k & 1u) + f.res.x * (((k >> 1u) & 1u) + f.res.y * ((k >> 2u) & 1u));
+// Bricked offsets of the 8 corners from the base corner, in the CPU's order.
+fn corner(c: Cell, k: u32) -> u32 {
+    return (k & 1u) * c.step.x + ((k >> 1u) & 1u) * c.step.y + ((k >> 2u) & 1u) * c.step.z;
 }
 
 fn corner_weight(frac: vec3<f32>, k: u32) -> f32 {
@@ -154,9 +172,9 @@ fn activate(f: FieldInfo, raw: f32) -> f32 {
 
 fn raw_density(f: FieldInfo, c: Cell) -> f32 {
     let o = f.offsets.x + c.base;
-    let sx = 1u;
-    let sy = f.res.x;
-    let sz = f.res.x * f.res.y;
+    let sx = c.step.x;
+    let sy = c.step.y;
+    let sz = c.step.z;
     let fr = c.frac;
     // Trilinear, corners in the CPU's order.
     let c00 = mix(density[o], density[o + sx], fr.x);
@@ -180,14 +198,15 @@ fn rgb_tap(q: u32, w: f32) -> vec4<f32> {
 // the whole shader down by 2x.
 fn rgb_at(f: FieldInfo, c: Cell) -> vec3<f32> {
     let o = f.offsets.y + c.base;
-    let sy = f.res.x;
-    let sz = f.res.x * f.res.y;
+    let sx = c.step.x;
+    let sy = c.step.y;
+    let sz = c.step.z;
     let a = c.frac;
     let g = vec3<f32>(1.0) - a;
-    let sum = rgb_tap(colors[o], g.x * g.y * g.z) + rgb_tap(colors[o + 1u], a.x * g.y * g.z)
-        + rgb_tap(colors[o + sy], g.x * a.y * g.z) + rgb_tap(colors[o + sy + 1u], a.x * a.y * g.z)
-        + rgb_tap(colors[o + sz], g.x * g.y * a.z) + rgb_tap(colors[o + sz + 1u], a.x * g.y * a.z)
-        + rgb_tap(colors[o + sz + sy], g.x * a.y * a.z) + rgb_tap(colors[o + sz + sy + 1u], a.x * a.y * a.z);
+    let sum = rgb_tap(colors[o], g.x * g.y * g.z) + rgb_tap(colors[o + sx], a.x * g.y * g.z)
+        + rgb_tap(colors[o + sy], g.x * a.y * g.z) + rgb_tap(colors[o + sy + sx], a.x * a.y * g.z)
+        + rgb_tap(colors[o + sz], g.x * g.y * a.z) + rgb_tap(colors[o + sz + sx], a.x * g.y * a.z)
+        + rgb_tap(colors[o + sz + sy], g.x * a.y * a.z) + rgb_tap(colors[o + sz + sy + sx], a.x * a.y * a.z);
     if sum.w <= 1e-6 {
         return vec3<f32>(0.0);
     }
@@ -243,7 +262,7 @@ fn sh_at(f: FieldInfo, c: Cell, dir: vec3<f32>) -> vec3<f32> {
     var wsum = 0.0;
     for (var k = 0u; k < 8u; k++) {
         let w = corner_weight(c.frac, k);
-        let base = sh_base(f, c.base + corner(f, k));
+        let base = sh_base(f, c.base + corner(c, k));
         if w == 0.0 || base < 0 {
             continue;
         }
@@ -264,10 +283,16 @@ fn sh_at(f: FieldInfo, c: Cell, dir: vec3<f32>) -> vec3<f32> {
 }
 
 fn color_at(f: FieldInfo, c: Cell, dir: vec3<f32>) -> vec3<f32> {
-    if (f.res.w & COLOR_SH) != 0u {
-        return sh_at(f, c, dir);
+#ifdef SH
+#ifdef RGB
+    if (f.res.w & COLOR_SH) == 0u {
+        return rgb_at(f, c);
     }
+#endif
+    return sh_at(f, c, dir);
+#else
     return rgb_at(f, c);
+#endif
 }
 
 fn bit(offset: u32, idx: u32) -> f32 {
@@ -276,9 +301,10 @@ fn bit(offset: u32, idx: u32) -> f32 {
 }
 
 // One corner of `mask_factor`: (w·σ·m, w·σ, w·m).
-fn mask_tap(f: FieldInfo, words: u32, base: u32, off: u32, w: f32) -> vec3<f32> {
-    let m = bit(words, base + off);
-    let ws = w * activate(f, density[f.offsets.x + base + off]);
+// `lin`: the corner's linear index (bitmap bit), `d`: its density word.
+fn mask_tap(f: FieldInfo, words: u32, lin: u32, d: u32, w: f32) -> vec3<f32> {
+    let m = bit(words, lin);
+    let ws = w * activate(f, density[d]);
     return vec3<f32>(ws * m, ws, w * m);
 }
 
@@ -292,13 +318,18 @@ fn bitmap_fraction(words: u32, f: FieldInfo, c: Cell) -> f32 {
     let sz = f.res.x * f.res.y;
     let a = c.frac;
     let g = vec3<f32>(1.0) - a;
-    let o = c.base;
+    let l = c.lin;
+    let o = f.offsets.x + c.base;
+    let t = c.step;
     let z = words;
     // Corners written out as in `rgb_at` (lavapipe is much faster so).
-    let s = mask_tap(f, z, o, 0u, g.x * g.y * g.z) + mask_tap(f, z, o, 1u, a.x * g.y * g.z)
-        + mask_tap(f, z, o, sy, g.x * a.y * g.z) + mask_tap(f, z, o, sy + 1u, a.x * a.y * g.z)
-        + mask_tap(f, z, o, sz, g.x * g.y * a.z) + mask_tap(f, z, o, sz + 1u, a.x * g.y * a.z)
-        + mask_tap(f, z, o, sz + sy, g.x * a.y * a.z) + mask_tap(f, z, o, sz + sy + 1u, a.x * a.y * a.z);
+    let s = mask_tap(f, z, l, o, g.x * g.y * g.z) + mask_tap(f, z, l + 1u, o + t.x, a.x * g.y * g.z)
+        + mask_tap(f, z, l + sy, o + t.y, g.x * a.y * g.z)
+        + mask_tap(f, z, l + sy + 1u, o + t.y + t.x, a.x * a.y * g.z)
+        + mask_tap(f, z, l + sz, o + t.z, g.x * g.y * a.z)
+        + mask_tap(f, z, l + sz + 1u, o + t.z + t.x, a.x * g.y * a.z)
+        + mask_tap(f, z, l + sz + sy, o + t.z + t.y, g.x * a.y * a.z)
+        + mask_tap(f, z, l + sz + sy + 1u, o + t.z + t.y + t.x, a.x * a.y * a.z);
     if s.y > 0.0 {
         return s.x / s.y;
     }
@@ -454,9 +485,11 @@ fn densities(n: u32, t: f32) -> f32 {
             cells[k] = c;
             if c.inside {
                 s = activate(f, raw_density(f, c));
+#ifdef MASKS
                 if s > 0.0 {
                     s *= mask_factor(info, f, c);
                 }
+#endif
             }
         }
         sigma[k] = s;
@@ -479,10 +512,14 @@ fn shade(n: u32, t: f32, sum: f32) -> vec3<f32> {
         let info = linfo[k];
         let f = finfo[k];
         var ck = color_at(f, cells[k], normalize(lo_dir[k]));
+#ifdef COLOR_EDIT
         if (info.w & LAYER_COLOR_EDIT) != 0u {
             ck = apply_edit(k, ck);
         }
+#endif
+#ifdef OVERLAY
         ck = overlay(k, f, cells[k], ck);
+#endif
         col += (s / sum) * ck;
     }
     return col;

@@ -234,13 +234,108 @@ fn layer_bound(layers: usize) -> u32 {
     }
 }
 
-/// What a march pipeline is specialised for.
+/// What a march pipeline is specialised for: the bound on the layer count
+/// and the shader code the scene needs (shader defs). Code a scene does not
+/// use is left out because on lavapipe its mere presence slows the whole
+/// march (register pressure): on the plain tabletop field, leaving out the
+/// SH path, the masks and the colour edits / overlay made frames 2× faster.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 struct MarchKey {
     /// [`layer_bound`] of the layer count.
     bound: u32,
-    /// Some layer has a highlight mask (shader def `HIGHLIGHT`).
+    /// Some layer's field has RGB colours (`RGB`).
+    rgb: bool,
+    /// Some layer's field has SH colours (`SH`).
+    sh: bool,
+    /// Some layer has a keep or remove mask (`MASKS`).
+    masks: bool,
+    /// Some layer has an appearance edit (`COLOR_EDIT`).
+    edits: bool,
+    /// Some layer is tinted or dimmed by the editor (`OVERLAY`).
+    overlay: bool,
+    /// Some layer has a highlight mask (`HIGHLIGHT`).
     highlight: bool,
+}
+
+impl MarchKey {
+    /// The key for the packed layers of a scene whose fields are `fields`.
+    fn of(layers: &[GpuLayer], fields: &[pack::GpuField]) -> Self {
+        let colour_kind = |l: &GpuLayer| fields.get(l.info[0] as usize).map_or(0, |f| f.res[3]);
+        let flags = |bits: u32| layers.iter().any(|l| l.info[3] & bits != 0);
+        let highlight = layers.iter().any(|l| l.highlight[0] != 0);
+        let sh = layers.iter().any(|l| colour_kind(l) & pack::COLOR_SH != 0);
+        MarchKey {
+            bound: layer_bound(layers.len()),
+            // (A scene without layers draws the background with the RGB variant.)
+            rgb: !sh || layers.iter().any(|l| colour_kind(l) & pack::COLOR_SH == 0),
+            sh,
+            masks: layers.iter().any(|l| l.info[1] != pack::MASK_ALL),
+            edits: flags(pack::LAYER_COLOR_EDIT),
+            overlay: highlight || flags(pack::LAYER_HIGHLIGHT | pack::LAYER_DIM),
+            highlight,
+        }
+    }
+
+    /// The variant with every feature for this bound: drawn while the exact
+    /// variant compiles, so that a newly needed feature never blanks the view.
+    fn general(self) -> Self {
+        MarchKey {
+            bound: self.bound,
+            rgb: true,
+            sh: true,
+            masks: true,
+            edits: true,
+            overlay: true,
+            highlight: true,
+        }
+    }
+
+    /// The variants the editor needs most, for this key's colour kinds:
+    /// the fields alone, a selected object (highlight mask), a removed one
+    /// (mask), a moved and selected one (two masked layers, tinted), and
+    /// the general variants for one and two layers. Compiled up front so
+    /// that a first stroke, removal or move draws at full speed at once.
+    fn common(self) -> [MarchKey; 6] {
+        let plain = MarchKey {
+            bound: 1,
+            masks: false,
+            edits: false,
+            overlay: false,
+            highlight: false,
+            ..self
+        };
+        [
+            plain,
+            MarchKey {
+                overlay: true,
+                highlight: true,
+                ..plain
+            },
+            MarchKey { masks: true, ..plain },
+            MarchKey {
+                bound: 2,
+                masks: true,
+                overlay: true,
+                ..plain
+            },
+            plain.general(),
+            MarchKey { bound: 2, ..plain }.general(),
+        ]
+    }
+
+    fn shader_defs(self) -> Vec<ShaderDefVal> {
+        let flags = [
+            (self.rgb, "RGB"),
+            (self.sh, "SH"),
+            (self.masks, "MASKS"),
+            (self.edits, "COLOR_EDIT"),
+            (self.overlay, "OVERLAY"),
+            (self.highlight, "HIGHLIGHT"),
+        ];
+        std::iter::once(ShaderDefVal::UInt("MAX_LAYERS".into(), self.bound))
+            .chain(flags.into_iter().filter(|f| f.0).map(|f| f.1.into()))
+            .collect()
+    }
 }
 
 /// An opaque colour target of `format` (the passes overwrite every pixel).
@@ -261,10 +356,7 @@ impl SpecializedRenderPipeline for RayMarchPipeline {
             vertex: self.fullscreen.to_vertex_state(),
             fragment: Some(FragmentState {
                 shader: self.shader.clone(),
-                shader_defs: [ShaderDefVal::UInt("MAX_LAYERS".into(), key.bound)]
-                    .into_iter()
-                    .chain(key.highlight.then(|| "HIGHLIGHT".into()))
-                    .collect(),
+                shader_defs: key.shader_defs(),
                 entry_point: Some("fragment".into()),
                 targets: vec![opaque_target(MARCH_COLOR_FORMAT), opaque_target(MARCH_DEPTH_FORMAT)],
             }),
@@ -282,6 +374,8 @@ struct FieldSlot {
 #[derive(Resource, Default)]
 struct GpuSceneCache {
     fields: Vec<FieldSlot>,
+    /// The fields' records as uploaded (absolute offsets).
+    field_infos: Vec<pack::GpuField>,
     bitmaps: Vec<Arc<Bitmap>>,
     bitmap_words: usize,
     bitmap_buffer: Option<Buffer>,
@@ -368,6 +462,7 @@ fn update_fields(
         "the fields are too large for the GPU view"
     );
     cache.field_buffer = Some(storage_buffer(device, "isrf_fields", bytemuck::cast_slice(&infos)));
+    cache.field_infos = infos;
     cache.aux_buffer = Some(storage_buffer(device, "isrf_aux", bytemuck::cast_slice(&aux)));
     cache.density_buffer = Some(storage_buffer(device, "isrf_density", bytemuck::cast_slice(&density)));
     cache.color_buffer = Some(storage_buffer(device, "isrf_colors", bytemuck::cast_slice(&colors)));

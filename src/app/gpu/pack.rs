@@ -6,11 +6,12 @@
 //! so that WGSL's uniform/storage layout rules equal `#[repr(C)]`); all
 //! fields' arrays are concatenated, and [`GpuField::offsets`] say where each
 //! field's part starts:
-//! - `density` (`array<f32>`): raw density per grid point, x fastest;
+//! - `density` (`array<f32>`): raw density per grid point, in the bricked
+//!   order of [`bricked_index`];
 //! - `colors` (`array<u32>`): RGB appearance: [`pack_rgb10`] colour and
-//!   stored flag per grid point (sparse appearance renormalises over stored
-//!   corners, exactly like `ChannelGrid::sample`); SH appearance: see
-//!   [`sh_colors`] (kind in `GpuField::res[3]`);
+//!   stored flag per grid point, bricked (sparse appearance renormalises
+//!   over stored corners, exactly like `ChannelGrid::sample`); SH
+//!   appearance: see [`sh_colors`] (kind in `GpuField::res[3]`);
 //! - `aux` (`array<u32>`): per field the empty-space grid (one byte per
 //!   skip cell, see [`skip_grid`]);
 //! - `bitmaps` (`array<u32>`): the packed words of every mask (bit `i` is bit
@@ -43,6 +44,47 @@ pub const LAYER_DIM: u32 = 4;
 pub const MASK_ALL: u32 = 0;
 pub const MASK_KEEP: u32 = 1;
 pub const MASK_REMOVE: u32 = 2;
+
+/// Grid points per brick edge: per-point arrays are stored in 4³ bricks.
+pub const BRICK: usize = 4;
+
+/// Bricks per axis for a grid of `res` points.
+pub fn brick_dims(res: [usize; 3]) -> [usize; 3] {
+    res.map(|n| n.div_ceil(BRICK))
+}
+
+/// Where grid point (x, y, z) sits in a bricked per-point array: bricks of
+/// 4³ = 64 points one after the other (x fastest, then y, then z), points
+/// in a brick in the same order. A ray's trilinear corners and its
+/// neighbouring rays' then share cache lines and pages; with x-fastest
+/// rows a step in z is a whole slice away. On lavapipe, where a frame is
+/// mostly waiting for these loads, this made frames about 1.5× faster.
+pub fn bricked_index(res: [usize; 3], x: usize, y: usize, z: usize) -> usize {
+    let b = brick_dims(res);
+    let brick = (z / BRICK * b[1] + y / BRICK) * b[0] + x / BRICK;
+    brick * BRICK.pow(3) + ((z % BRICK) * BRICK + y % BRICK) * BRICK + x % BRICK
+}
+
+/// A per-point array in bricked order: `value(v)` for grid point v (linear
+/// index, x fastest), `fill` for the padding of partial bricks.
+fn bricked<T: Copy + Send + Sync>(res: [usize; 3], fill: T, value: impl Fn(usize) -> T + Sync) -> Vec<T> {
+    let b = brick_dims(res);
+    let per = BRICK.pow(3);
+    (0..b[0] * b[1] * b[2] * per)
+        .into_par_iter()
+        .map(|i| {
+            let (brick, w) = (i / per, i % per);
+            let x = brick % b[0] * BRICK + w % BRICK;
+            let y = brick / b[0] % b[1] * BRICK + w / BRICK % BRICK;
+            let z = brick / (b[0] * b[1]) * BRICK + w / (BRICK * BRICK);
+            if x < res[0] && y < res[1] && z < res[2] {
+                value(x + res[0] * (y + res[1] * z))
+            } else {
+                fill
+            }
+        })
+        .collect()
+}
 
 /// Per-view parameters (uniform).
 #[repr(C)]
@@ -190,17 +232,14 @@ fn sparse_bit(g: &ChannelGrid) -> u32 {
     }
 }
 
-fn colors_of(g: &ChannelGrid, n: usize) -> Vec<u32> {
+fn colors_of(g: &ChannelGrid) -> Vec<u32> {
     let ch = g.channels;
-    (0..n)
-        .into_par_iter()
-        .map(|v| {
-            slot_of(g, v).map_or(0, |s| {
-                let c = &g.data[s * ch..s * ch + 3];
-                pack_rgb10([c[0].to_f32(), c[1].to_f32(), c[2].to_f32()])
-            })
+    bricked(g.geom.res, 0, |v| {
+        slot_of(g, v).map_or(0, |s| {
+            let c = &g.data[s * ch..s * ch + 3];
+            pack_rgb10([c[0].to_f32(), c[1].to_f32(), c[2].to_f32()])
         })
-        .collect()
+    })
 }
 
 /// Colour kind bits (`GpuField::res[3]`): the appearance is sparse.
@@ -217,50 +256,61 @@ fn slot_of(g: &ChannelGrid, v: usize) -> Option<usize> {
     }
 }
 
-/// SH appearance for the shader: for sparse grids a table with slot + 1 per
-/// grid point (0 = not stored), then [`SH_WORDS`] words of f16 pairs per
-/// stored point (`[r0..r8, g0..g8, b0..b8]`, as `ChannelGrid`). Returns the
-/// words and where the coefficients start.
-fn sh_colors(g: &ChannelGrid, n: usize) -> Result<(Vec<u32>, u32)> {
+/// The [`SH_WORDS`] words of f16 pairs of one stored point's 27
+/// coefficients (`[r0..r8, g0..g8, b0..b8]`, as `ChannelGrid`).
+fn sh_words(c: &[half::f16]) -> [u32; SH_WORDS] {
+    std::array::from_fn(|w| {
+        let lo = c[2 * w].to_bits() as u32;
+        let hi = c.get(2 * w + 1).map_or(0, |h| h.to_bits() as u32);
+        lo | hi << 16
+    })
+}
+
+/// SH appearance for the shader: for sparse grids a bricked table with
+/// slot + 1 per grid point (0 = not stored), then the [`sh_words`] of each
+/// stored point; for dense grids the [`sh_words`] of every grid point in
+/// bricked order. Returns the words and where the coefficients start.
+fn sh_colors(g: &ChannelGrid) -> Result<(Vec<u32>, u32)> {
     ensure!(
         g.channels == 27,
         "SH appearance with {} channels (expected 27)",
         g.channels
     );
-    let mut out: Vec<u32> = match &g.layout {
-        Layout::Dense => Vec::new(),
-        Layout::Sparse(_) => (0..n)
-            .into_par_iter()
-            .map(|v| slot_of(g, v).map_or(0, |s| s as u32 + 1))
-            .collect(),
+    let res = g.geom.res;
+    let points = brick_dims(res).iter().product::<usize>() * BRICK.pow(3);
+    let (table, records) = match &g.layout {
+        Layout::Dense => (0, points),
+        Layout::Sparse(_) => (points, g.slots()),
     };
-    let start = out.len();
     ensure!(
-        start + g.slots() * SH_WORDS < u32::MAX as usize,
+        table + records * SH_WORDS < u32::MAX as usize,
         "the SH appearance is too large for the GPU view"
     );
-    out.extend(g.data.chunks(27).flat_map(|c| {
-        (0..SH_WORDS).map(move |w| {
-            let lo = c[2 * w].to_bits() as u32;
-            let hi = c.get(2 * w + 1).map_or(0, |h| h.to_bits() as u32);
-            lo | hi << 16
-        })
-    }));
-    Ok((out, start as u32))
+    let out: Vec<u32> = match &g.layout {
+        Layout::Dense => bricked(res, [0; SH_WORDS], |v| sh_words(&g.data[v * 27..v * 27 + 27]))
+            .into_iter()
+            .flatten()
+            .collect(),
+        Layout::Sparse(_) => {
+            let mut out = bricked(res, 0, |v| slot_of(g, v).map_or(0, |s| s as u32 + 1));
+            out.extend(g.data.chunks(27).flat_map(sh_words));
+            out
+        }
+    };
+    Ok((out, table as u32))
 }
 
 /// Packs a field for upload: RGB or SH appearance (dense or sparse); VM +
 /// MLP appearance is baked into sparse SH first ([`crate::field::bake`]).
 pub fn pack_field(field: &Field) -> Result<PackedField> {
     let geom = field.geom();
-    let n = geom.len();
     let (colors, color_kind, sh_start) = match &field.appearance {
         Appearance::Rgb(g) => {
             ensure!(g.channels >= 3, "RGB appearance with {} channels", g.channels);
-            (colors_of(g, n), sparse_bit(g), 0)
+            (colors_of(g), sparse_bit(g), 0)
         }
         Appearance::Sh2(g) => {
-            let (c, start) = sh_colors(g, n)?;
+            let (c, start) = sh_colors(g)?;
             (c, sparse_bit(g) | COLOR_SH, start)
         }
         // The ray marcher has no MLP: the network is baked into SH once,
@@ -284,7 +334,7 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
     let b = geom.bounds;
     let cell = geom.spacing() * SKIP_BLOCK as f32;
     Ok(PackedField {
-        density: field.density.raw.clone(),
+        density: bricked(geom.res, 0.0, |v| field.density.raw[v]),
         colors,
         aux,
         info: GpuField {
@@ -499,10 +549,11 @@ mod tests {
         let p = pack_field(&f2).unwrap();
         assert_eq!(p.info.res[3], COLOR_SH | COLOR_SPARSE);
         let start = p.info.offsets[2] as usize;
-        assert_eq!(start, g.len());
+        // 17 points = 5 bricks per axis.
+        assert_eq!(start, 125 * 64);
         // The shader's lookup: table entry = slot + 1, then half k of the slot.
         for v in [0, 5, 7, 100, g.len() - 1] {
-            let slot = (p.colors[v] as usize).checked_sub(1);
+            let slot = (p.colors[at(g, v)] as usize).checked_sub(1);
             assert_eq!(slot, ix.slot(v), "voxel {v}");
             let Some(s) = slot else { continue };
             for k in [0, 8, 9, 26] {
@@ -517,6 +568,49 @@ mod tests {
         assert_eq!(infos[1].offsets[1] as usize, rgb.colors.len());
         assert_eq!(infos[1].offsets[2] as usize, rgb.colors.len() + start);
         assert_eq!(colors.len(), rgb.colors.len() + p.colors.len());
+    }
+
+    /// Bricked index of linear grid point v.
+    fn at(g: GridGeom, v: usize) -> usize {
+        let r = g.res;
+        bricked_index(r, v % r[0], v / r[0] % r[1], v / (r[0] * r[1]))
+    }
+
+    #[test]
+    fn bricked_order_is_a_bijection_with_the_shaders_neighbour_steps() {
+        let res = [9, 6, 5];
+        let n = res.iter().product::<usize>();
+        let g = GridGeom::new(Aabb::new(Vec3::ZERO, Vec3::ONE), res);
+        let b = brick_dims(res);
+        assert_eq!(b, [3, 2, 2]);
+        let mut seen = vec![false; b.iter().product::<usize>() * 64];
+        for v in 0..n {
+            let i = at(g, v);
+            assert!(!seen[i], "two points at {i}");
+            seen[i] = true;
+        }
+        // `bricked` puts value(v) at v's bricked index, `fill` elsewhere.
+        let arr = bricked(res, usize::MAX, |v| v);
+        assert_eq!(arr.len(), seen.len());
+        for (i, &v) in arr.iter().enumerate() {
+            assert_eq!(v != usize::MAX, seen[i]);
+            if v != usize::MAX {
+                assert_eq!(at(g, v), i);
+            }
+        }
+        // raymarch.wgsl `cell_of`: the +x/+y/+z neighbour is 1/4/16 on,
+        // or 61, 64·bx − 12, 64·bx·by − 48 on across a brick face.
+        for z in 0..res[2] - 1 {
+            for y in 0..res[1] - 1 {
+                for x in 0..res[0] - 1 {
+                    let i = bricked_index(res, x, y, z);
+                    let step = |w: usize, inside: usize, across: usize| if w % 4 == 3 { across } else { inside };
+                    assert_eq!(bricked_index(res, x + 1, y, z) - i, step(x, 1, 61));
+                    assert_eq!(bricked_index(res, x, y + 1, z) - i, step(y, 4, 64 * b[0] - 12));
+                    assert_eq!(bricked_index(res, x, y, z + 1) - i, step(z, 16, 64 * b[0] * b[1] - 48));
+                }
+            }
+        }
     }
 
     #[test]
@@ -562,13 +656,16 @@ mod tests {
     fn colours_cover_every_grid_point_with_a_stored_flag() {
         let f = ball();
         let p = pack_field(&f).unwrap();
-        assert_eq!(p.colors.len(), 17 * 17 * 17);
+        // 17 points = 5 bricks of 4 per axis.
+        assert_eq!(p.colors.len(), 125 * 64);
+        assert_eq!(p.density.len(), 125 * 64);
         let g = GridGeom::new(f.bounds(), [17; 3]);
         let i = g.index(16, 0, 8);
         let want = g.point_of(i) * 0.5 + 0.5;
-        let r = (p.colors[i] & 1023) as f32 / 1023.0;
+        let r = (p.colors[at(g, i)] & 1023) as f32 / 1023.0;
         assert!((r - want.x).abs() < 1e-3);
-        assert_eq!(p.colors[i] >> 30, 1);
+        assert_eq!(p.colors[at(g, i)] >> 30, 1);
+        assert_eq!(p.density[at(g, i)], f.density.raw[i]);
         assert_eq!(p.info.res, [17, 17, 17, 0]);
         // Sparse appearance: unstored points carry flag 0.
         let bits = Bitmap::from_fn(g.res, |i| i % 7 == 0);
@@ -579,7 +676,7 @@ mod tests {
         let p = pack_field(&f2).unwrap();
         assert_eq!(p.info.res[3], 1);
         for v in 0..g.len() {
-            assert_eq!(p.colors[v] >> 30 == 1, v % 7 == 0, "voxel {v}");
+            assert_eq!(p.colors[at(g, v)] >> 30 == 1, v % 7 == 0, "voxel {v}");
         }
         assert_eq!(p.colors[0], pack_rgb10([1.0, 0.0, 1.0]));
     }

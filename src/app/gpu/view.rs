@@ -10,8 +10,8 @@
 
 use super::pack::GpuView;
 use super::{
-    layer_bound, opaque_target, GpuSceneCache, MarchKey, RayMarchCamera, RayMarchPipeline, RayMarchShaders,
-    SharedStatus, MARCH_COLOR_FORMAT, MARCH_DEPTH_FORMAT,
+    opaque_target, GpuSceneCache, MarchKey, RayMarchCamera, RayMarchPipeline, RayMarchShaders, SharedStatus,
+    MARCH_COLOR_FORMAT, MARCH_DEPTH_FORMAT,
 };
 use bevy::core_pipeline::FullscreenShader;
 use bevy::prelude::*;
@@ -278,7 +278,7 @@ pub(super) fn prepare_views(
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
     status: Res<SharedStatus>,
-    mut prewarmed: Local<bool>,
+    mut prewarmed: Local<Option<(bool, bool)>>,
 ) {
     let (Some(march_pipeline), Some(composite_pipeline)) = pipelines else {
         return;
@@ -288,21 +288,25 @@ pub(super) fn prepare_views(
             commands.entity(entity).remove::<ViewDraw>();
             continue;
         }
-        let variant = MarchKey {
-            bound: layer_bound(cache.layers.len()),
-            highlight: cache.layers.iter().any(|l| l.highlight[0] != 0),
-        };
-        let march_id = specialized.0.specialize(&pipeline_cache, &march_pipeline, variant);
-        if !*prewarmed {
-            // Compile the common variants up front, so that selecting or
-            // moving the first object never waits for a pipeline.
-            for (bound, highlight) in [(1, false), (1, true), (2, false)] {
-                specialized
-                    .0
-                    .specialize(&pipeline_cache, &march_pipeline, MarchKey { bound, highlight });
+        let key = MarchKey::of(&cache.layers, &cache.field_infos);
+        let exact = specialized.0.specialize(&pipeline_cache, &march_pipeline, key);
+        // Until the exact variant is compiled, the one with every feature
+        // draws, so that a newly needed feature never blanks the view.
+        let general = specialized
+            .0
+            .specialize(&pipeline_cache, &march_pipeline, key.general());
+        let kinds = (key.rgb, key.sh);
+        if *prewarmed != Some(kinds) {
+            for k in key.common() {
+                specialized.0.specialize(&pipeline_cache, &march_pipeline, k);
             }
-            *prewarmed = true;
+            *prewarmed = Some(kinds);
         }
+        let march_id = if pipeline_ready(&pipeline_cache, exact, &status) {
+            exact
+        } else {
+            general
+        };
         let samples = msaa.map_or(1, |m| m.samples());
         let composite_id =
             specialized
