@@ -28,11 +28,14 @@ use bevy::core_pipeline::{Core3d, Core3dSystems, FullscreenShader};
 use bevy::prelude::*;
 use bevy::render::extract_component::{ExtractComponent, ExtractComponentPlugin};
 use bevy::render::extract_resource::{ExtractResource, ExtractResourcePlugin};
-use bevy::render::render_resource::binding_types::{storage_buffer_read_only_sized, uniform_buffer_sized};
+use bevy::render::render_resource::binding_types::{
+    sampler, storage_buffer_read_only_sized, texture_3d, uniform_buffer_sized,
+};
 use bevy::render::render_resource::{
-    BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor, BufferUsages, ColorTargetState,
-    ColorWrites, FragmentState, RenderPipelineDescriptor, ShaderStages, SpecializedRenderPipeline,
-    SpecializedRenderPipelines, TextureFormat,
+    AddressMode, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor, BufferUsages,
+    ColorTargetState, ColorWrites, Extent3d, FilterMode, FragmentState, RenderPipelineDescriptor, Sampler,
+    SamplerBindingType, SamplerDescriptor, ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines,
+    TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType, TextureUsages, TextureView,
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::{Render, RenderApp, RenderStartup, RenderSystems};
@@ -208,6 +211,9 @@ fn init_pipeline(mut commands: Commands, shaders: Res<RayMarchShaders>, fullscre
                 storage(),
                 storage(),
                 storage(),
+                texture_3d(TextureSampleType::Float { filterable: true }),
+                texture_3d(TextureSampleType::Float { filterable: true }),
+                sampler(SamplerBindingType::Filtering),
             ),
         ),
     );
@@ -239,6 +245,9 @@ fn layer_bound(layers: usize) -> u32 {
 /// use is left out because on lavapipe its mere presence slows the whole
 /// march (register pressure): on the plain tabletop field, leaving out the
 /// SH path, the masks and the colour edits / overlay made frames 2× faster.
+/// Variants are compiled when first needed (the view keeps its last image
+/// meanwhile): compiling pipelines ahead, concurrently with drawing, made
+/// lavapipe's marches come out empty at times.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 struct MarchKey {
     /// [`layer_bound`] of the layer count.
@@ -274,53 +283,6 @@ impl MarchKey {
             overlay: highlight || flags(pack::LAYER_HIGHLIGHT | pack::LAYER_DIM),
             highlight,
         }
-    }
-
-    /// The variant with every feature for this bound: drawn while the exact
-    /// variant compiles, so that a newly needed feature never blanks the view.
-    fn general(self) -> Self {
-        MarchKey {
-            bound: self.bound,
-            rgb: true,
-            sh: true,
-            masks: true,
-            edits: true,
-            overlay: true,
-            highlight: true,
-        }
-    }
-
-    /// The variants the editor needs most, for this key's colour kinds:
-    /// the fields alone, a selected object (highlight mask), a removed one
-    /// (mask), a moved and selected one (two masked layers, tinted), and
-    /// the general variants for one and two layers. Compiled up front so
-    /// that a first stroke, removal or move draws at full speed at once.
-    fn common(self) -> [MarchKey; 6] {
-        let plain = MarchKey {
-            bound: 1,
-            masks: false,
-            edits: false,
-            overlay: false,
-            highlight: false,
-            ..self
-        };
-        [
-            plain,
-            MarchKey {
-                overlay: true,
-                highlight: true,
-                ..plain
-            },
-            MarchKey { masks: true, ..plain },
-            MarchKey {
-                bound: 2,
-                masks: true,
-                overlay: true,
-                ..plain
-            },
-            plain.general(),
-            MarchKey { bound: 2, ..plain }.general(),
-        ]
     }
 
     fn shader_defs(self) -> Vec<ShaderDefVal> {
@@ -383,6 +345,9 @@ struct GpuSceneCache {
     aux_buffer: Option<Buffer>,
     density_buffer: Option<Buffer>,
     color_buffer: Option<Buffer>,
+    /// The [`pack::Atlas`] textures (density, RGB) and their trilinear
+    /// sampler.
+    atlas: Option<AtlasTextures>,
     layer_buffer: Option<Buffer>,
     layers: Vec<GpuLayer>,
     step: f32,
@@ -406,6 +371,94 @@ fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> Bu
         contents: &bytes,
         usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
     })
+}
+
+/// The atlas on the GPU.
+struct AtlasTextures {
+    density: TextureView,
+    rgb: TextureView,
+    sampler: Sampler,
+    size: [usize; 3],
+}
+
+/// A 3D texture of `size` holding `data` (texels x fastest).
+fn texture_3d_with(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    label: &'static str,
+    format: TextureFormat,
+    size: [usize; 3],
+    data: &[u8],
+) -> TextureView {
+    let desc = TextureDescriptor {
+        label: Some(label),
+        size: Extent3d {
+            width: size[0] as u32,
+            height: size[1] as u32,
+            depth_or_array_layers: size[2] as u32,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: TextureDimension::D3,
+        format,
+        usage: TextureUsages::TEXTURE_BINDING | TextureUsages::COPY_DST,
+        view_formats: &[],
+    };
+    let texture = device.create_texture(&desc);
+    let row = (data.len() / (size[1] * size[2])) as u32;
+    queue.write_texture(
+        texture.as_image_copy(),
+        data,
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(row),
+            rows_per_image: Some(size[1] as u32),
+        },
+        desc.size,
+    );
+    texture.create_view(&default())
+}
+
+/// Uploads the atlas. Density goes up as f16: filterable on every GPU
+/// without an optional feature, at full filtering rate, in half the memory;
+/// raw densities keep 3 significant digits, far below what the tests'
+/// GPU-vs-CPU comparison can see. (lavapipe's f32 filtering also returned
+/// wrong densities for the first frames of the windowed editor.)
+fn upload_atlas(device: &RenderDevice, queue: &RenderQueue, a: &pack::Atlas) -> AtlasTextures {
+    let half: Vec<u16> = a.density.iter().map(|&v| half::f16::from_f32(v).to_bits()).collect();
+    let density = texture_3d_with(
+        device,
+        queue,
+        "isrf_atlas_density",
+        TextureFormat::R16Float,
+        a.size,
+        bytemuck::cast_slice(&half),
+    );
+    let rgb = texture_3d_with(
+        device,
+        queue,
+        "isrf_atlas_rgb",
+        TextureFormat::Rgb10a2Unorm,
+        a.size,
+        bytemuck::cast_slice(&a.rgb),
+    );
+    let sampler = device.create_sampler(&SamplerDescriptor {
+        label: Some("isrf_atlas_sampler"),
+        address_mode_u: AddressMode::ClampToEdge,
+        address_mode_v: AddressMode::ClampToEdge,
+        address_mode_w: AddressMode::ClampToEdge,
+        mag_filter: FilterMode::Linear,
+        min_filter: FilterMode::Linear,
+        ..default()
+    });
+    // Flush the uploads now, in their own submission.
+    queue.submit(std::iter::empty());
+    AtlasTextures {
+        density,
+        rgb,
+        sampler,
+        size: a.size,
+    }
 }
 
 fn prepare_scene(
@@ -432,6 +485,7 @@ fn update_fields(
     cache: &mut GpuSceneCache,
     wanted: &[Arc<Field>],
     device: &RenderDevice,
+    queue: &RenderQueue,
     status: &SharedStatus,
 ) -> crate::Result<()> {
     let same =
@@ -456,7 +510,17 @@ fn update_fields(
         }
     }
     let parts: Vec<&PackedField> = cache.fields.iter().map(|s| &s.packed).collect();
-    let (infos, density, colors, aux) = pack::concat_fields(&parts);
+    let (mut infos, density, colors, aux) = pack::concat_fields(&parts);
+    let grids: Vec<(&[f32], &[u32], [usize; 3])> = cache
+        .fields
+        .iter()
+        .map(|s| (&s.field.density.raw[..], &s.packed.rgb[..], s.field.res()))
+        .collect();
+    let atlas = pack::atlas(&grids, device.limits().max_texture_dimension_3d as usize)?;
+    for (info, z0) in infos.iter_mut().zip(&atlas.z0) {
+        info.offsets[3] = *z0 as u32;
+    }
+    cache.atlas = Some(upload_atlas(device, queue, &atlas));
     crate::ensure!(
         density.len() < u32::MAX as usize && aux.len() < u32::MAX as usize,
         "the fields are too large for the GPU view"
@@ -532,7 +596,7 @@ fn update_cache(
     status: &SharedStatus,
 ) -> crate::Result<()> {
     let wanted = pack::distinct_fields(scene);
-    update_fields(cache, &wanted, device, status)?;
+    update_fields(cache, &wanted, device, queue, status)?;
     let bitmaps = pack::distinct_bitmaps(scene, &march.overlay);
     let (offs, total) = pack::bitmap_offsets(&bitmaps);
     update_bitmaps(cache, bitmaps, &offs, total, device, queue, status);

@@ -6,12 +6,17 @@
 //! so that WGSL's uniform/storage layout rules equal `#[repr(C)]`); all
 //! fields' arrays are concatenated, and [`GpuField::offsets`] say where each
 //! field's part starts:
-//! - `density` (`array<f32>`): raw density per grid point, in the bricked
-//!   order of [`bricked_index`];
-//! - `colors` (`array<u32>`): RGB appearance: [`pack_rgb10`] colour and
-//!   stored flag per grid point, bricked (sparse appearance renormalises
-//!   over stored corners, exactly like `ChannelGrid::sample`); SH
-//!   appearance: see [`sh_colors`] (kind in `GpuField::res[3]`);
+//! - the density and RGB colour textures (3D, sampled with the GPU's
+//!   trilinear filter): every field's grid stacked along z in one
+//!   [`Atlas`], raw density and [`rgb10a2`] colours (alpha = stored, so
+//!   sparse colours renormalise over stored corners like
+//!   `ChannelGrid::sample`); [`GpuField::offsets`]`[3]` is the field's first
+//!   slice;
+//! - `density` (`array<f32>`): raw density per grid point again, in the
+//!   bricked order of [`bricked_index`], for masks (which weight each
+//!   corner's bit by its own density);
+//! - `colors` (`array<u32>`): SH appearance: see [`sh_colors`] (kind in
+//!   `GpuField::res[3]`); nothing for RGB fields;
 //! - `aux` (`array<u32>`): per field the empty-space grid (one byte per
 //!   skip cell, see [`skip_grid`]);
 //! - `bitmaps` (`array<u32>`): the packed words of every mask (bit `i` is bit
@@ -55,10 +60,13 @@ pub fn brick_dims(res: [usize; 3]) -> [usize; 3] {
 
 /// Where grid point (x, y, z) sits in a bricked per-point array: bricks of
 /// 4³ = 64 points one after the other (x fastest, then y, then z), points
-/// in a brick in the same order. A ray's trilinear corners and its
-/// neighbouring rays' then share cache lines and pages; with x-fastest
-/// rows a step in z is a whole slice away. On lavapipe, where a frame is
-/// mostly waiting for these loads, this made frames about 1.5× faster.
+/// in a brick in the same order. A cell's 8 corners and its neighbours'
+/// then share cache lines and pages; with x-fastest rows a step in z is a
+/// whole slice away. (On lavapipe, with x-fastest rows, confining the
+/// colour loads to an L2-sized window made frames 20 % faster, and with
+/// bricks it no longer changed them; whole-frame A/B runs were within this
+/// machine's noise. The density and RGB colours now come from the atlas
+/// textures; masks and SH colours still read these arrays.)
 pub fn bricked_index(res: [usize; 3], x: usize, y: usize, z: usize) -> usize {
     let b = brick_dims(res);
     let brick = (z / BRICK * b[1] + y / BRICK) * b[0] + x / BRICK;
@@ -102,6 +110,8 @@ pub struct GpuView {
     pub march: [f32; 4],
     /// layer count, 0, 0, 0.
     pub counts: [u32; 4],
+    /// 1 / the atlas textures' size in texels (xyz), 0.
+    pub atlas: [f32; 4],
 }
 
 /// One layer (storage buffer, array).
@@ -135,7 +145,8 @@ pub struct GpuField {
     pub bounds_max: [f32; 4],
     /// nx, ny, nz, colour kind ([`COLOR_SPARSE`] | [`COLOR_SH`]).
     pub res: [u32; 4],
-    /// Offsets: density (f32), colours (u32), SH coefficients (u32), 0.
+    /// Offsets: density (f32), colours (u32), SH coefficients (u32), first
+    /// atlas slice.
     pub offsets: [u32; 4],
     /// Skip grid dims xyz, offset (aux u32).
     pub skip: [u32; 4],
@@ -146,9 +157,12 @@ pub struct GpuField {
 /// A field's grids in upload form (offsets relative to its own arrays).
 #[derive(Clone, Debug)]
 pub struct PackedField {
+    /// Raw density, bricked ([`bricked_index`]).
     pub density: Vec<f32>,
-    /// [`pack_rgb10`] per grid point, or [`sh_colors`].
+    /// [`sh_colors`] (empty for RGB fields).
     pub colors: Vec<u32>,
+    /// [`rgb10a2`] texels per grid point, x fastest (empty for SH fields).
+    pub rgb: Vec<u32>,
     /// Skip grid bytes packed four per u32.
     pub aux: Vec<u32>,
     pub info: GpuField,
@@ -214,15 +228,17 @@ fn chebyshev(occ: &[bool], dims: [usize; 3]) -> Vec<u8> {
     dist
 }
 
-/// RGB as 10-bit unorm (r in bits 0..10, g 10..20, b 20..30) plus a 2-bit
-/// flag (bits 30..32) = 1 where the appearance stores the grid point, for
-/// every grid point: one load per corner in the shader. 10 bits per channel
+/// A stored RGB colour as an `Rgb10a2Unorm` texel: 10-bit unorm r, g, b
+/// (bits 0..10, 10..20, 20..30) and alpha 1 (bits 30..32 = 3); points
+/// the appearance does not store are 0 (alpha 0). The trilinear filter
+/// then yields Σ w·rgb and Σ w over the stored corners, whose ratio is the
+/// sparse renormalisation of `ChannelGrid::sample`. 10 bits per channel
 /// keep colours within 5e-4 of their f16 values. Values outside [0, 1] are
 /// clamped before interpolation where the CPU clamps after: the same for
 /// RGB grids in range (demo scenes, imports); trained fields use SH.
-pub fn pack_rgb10(c: [f32; 3]) -> u32 {
+pub fn rgb10a2(c: [f32; 3]) -> u32 {
     let q = |v: f32| (v.clamp(0.0, 1.0) * 1023.0).round() as u32;
-    q(c[0]) | q(c[1]) << 10 | q(c[2]) << 20 | 1 << 30
+    q(c[0]) | q(c[1]) << 10 | q(c[2]) << 20 | 3 << 30
 }
 
 fn sparse_bit(g: &ChannelGrid) -> u32 {
@@ -232,14 +248,17 @@ fn sparse_bit(g: &ChannelGrid) -> u32 {
     }
 }
 
-fn colors_of(g: &ChannelGrid) -> Vec<u32> {
+fn rgb_texels(g: &ChannelGrid) -> Vec<u32> {
     let ch = g.channels;
-    bricked(g.geom.res, 0, |v| {
-        slot_of(g, v).map_or(0, |s| {
-            let c = &g.data[s * ch..s * ch + 3];
-            pack_rgb10([c[0].to_f32(), c[1].to_f32(), c[2].to_f32()])
+    (0..g.geom.len())
+        .into_par_iter()
+        .map(|v| {
+            slot_of(g, v).map_or(0, |s| {
+                let c = &g.data[s * ch..s * ch + 3];
+                rgb10a2([c[0].to_f32(), c[1].to_f32(), c[2].to_f32()])
+            })
         })
-    })
+        .collect()
 }
 
 /// Colour kind bits (`GpuField::res[3]`): the appearance is sparse.
@@ -304,14 +323,14 @@ fn sh_colors(g: &ChannelGrid) -> Result<(Vec<u32>, u32)> {
 /// MLP appearance is baked into sparse SH first ([`crate::field::bake`]).
 pub fn pack_field(field: &Field) -> Result<PackedField> {
     let geom = field.geom();
-    let (colors, color_kind, sh_start) = match &field.appearance {
+    let (colors, rgb, color_kind, sh_start) = match &field.appearance {
         Appearance::Rgb(g) => {
             ensure!(g.channels >= 3, "RGB appearance with {} channels", g.channels);
-            (colors_of(g), sparse_bit(g), 0)
+            (Vec::new(), rgb_texels(g), sparse_bit(g), 0)
         }
         Appearance::Sh2(g) => {
             let (c, start) = sh_colors(g)?;
-            (c, sparse_bit(g) | COLOR_SH, start)
+            (c, Vec::new(), sparse_bit(g) | COLOR_SH, start)
         }
         // The ray marcher has no MLP: the network is baked into SH once,
         // when the field is first uploaded.
@@ -336,6 +355,7 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
     Ok(PackedField {
         density: bricked(geom.res, 0.0, |v| field.density.raw[v]),
         colors,
+        rgb,
         aux,
         info: GpuField {
             bounds_min: v4(b.min, shift),
@@ -348,7 +368,62 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
     })
 }
 
-/// Concatenates packed fields; returns the field infos with absolute offsets.
+/// The fields' grids stacked along z in two 3D textures (x fastest, then
+/// y, then z), each field from its [`GpuField::offsets`]`[3]`th slice;
+/// textures as wide and high as the largest field.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Atlas {
+    pub size: [usize; 3],
+    /// Raw density per texel.
+    pub density: Vec<f32>,
+    /// [`rgb10a2`] per texel (0 for SH fields and padding).
+    pub rgb: Vec<u32>,
+    /// Each field's first slice.
+    pub z0: Vec<usize>,
+}
+
+/// Stacks the fields' `(raw density, RGB texels (may be empty), res)`
+/// into an [`Atlas`] of at most `max_side` texels per side (the device's
+/// 3D texture limit).
+pub fn atlas(fields: &[(&[f32], &[u32], [usize; 3])], max_side: usize) -> Result<Atlas> {
+    let w = fields.iter().map(|f| f.2[0]).max().unwrap_or(1);
+    let h = fields.iter().map(|f| f.2[1]).max().unwrap_or(1);
+    let z0: Vec<usize> = fields
+        .iter()
+        .scan(0, |z, f| {
+            let at = *z;
+            *z += f.2[2];
+            Some(at)
+        })
+        .collect();
+    let d = fields.iter().map(|f| f.2[2]).sum::<usize>().max(1);
+    ensure!(
+        w <= max_side && h <= max_side && d <= max_side,
+        "the fields need a {w}x{h}x{d} texture, more than this GPU's 3D textures hold ({max_side} per side)"
+    );
+    let mut out = Atlas {
+        size: [w, h, d],
+        density: vec![0.0; w * h * d],
+        rgb: vec![0; w * h * d],
+        z0,
+    };
+    for ((dens, rgb, r), &z0) in fields.iter().zip(&out.z0.clone()) {
+        for z in 0..r[2] {
+            for y in 0..r[1] {
+                let src = r[0] * (y + r[1] * z);
+                let dst = w * (y + h * (z0 + z));
+                out.density[dst..dst + r[0]].copy_from_slice(&dens[src..src + r[0]]);
+                if !rgb.is_empty() {
+                    out.rgb[dst..dst + r[0]].copy_from_slice(&rgb[src..src + r[0]]);
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Concatenates packed fields; returns the field infos with absolute
+/// offsets (the atlas slice is set by the caller, from [`atlas`]).
 pub fn concat_fields(fields: &[&PackedField]) -> (Vec<GpuField>, Vec<f32>, Vec<u32>, Vec<u32>) {
     let mut infos = Vec::new();
     let (mut density, mut colors, mut aux) = (Vec::new(), Vec::new(), Vec::new());
@@ -656,15 +731,16 @@ mod tests {
     fn colours_cover_every_grid_point_with_a_stored_flag() {
         let f = ball();
         let p = pack_field(&f).unwrap();
+        assert_eq!(p.rgb.len(), 17 * 17 * 17);
+        assert!(p.colors.is_empty());
         // 17 points = 5 bricks of 4 per axis.
-        assert_eq!(p.colors.len(), 125 * 64);
         assert_eq!(p.density.len(), 125 * 64);
         let g = GridGeom::new(f.bounds(), [17; 3]);
         let i = g.index(16, 0, 8);
         let want = g.point_of(i) * 0.5 + 0.5;
-        let r = (p.colors[at(g, i)] & 1023) as f32 / 1023.0;
+        let r = (p.rgb[i] & 1023) as f32 / 1023.0;
         assert!((r - want.x).abs() < 1e-3);
-        assert_eq!(p.colors[at(g, i)] >> 30, 1);
+        assert_eq!(p.rgb[i] >> 30, 3);
         assert_eq!(p.density[at(g, i)], f.density.raw[i]);
         assert_eq!(p.info.res, [17, 17, 17, 0]);
         // Sparse appearance: unstored points carry flag 0.
@@ -676,9 +752,34 @@ mod tests {
         let p = pack_field(&f2).unwrap();
         assert_eq!(p.info.res[3], 1);
         for v in 0..g.len() {
-            assert_eq!(p.colors[at(g, v)] >> 30 == 1, v % 7 == 0, "voxel {v}");
+            // Stored points have alpha 1, the others are 0 entirely.
+            assert_eq!(p.rgb[v] >> 30 == 3, v % 7 == 0, "voxel {v}");
+            assert_eq!(p.rgb[v] == 0, v % 7 != 0, "voxel {v}");
         }
-        assert_eq!(p.colors[0], pack_rgb10([1.0, 0.0, 1.0]));
+        assert_eq!(p.rgb[0], rgb10a2([1.0, 0.0, 1.0]));
+    }
+
+    #[test]
+    fn atlas_stacks_fields_along_z_and_refuses_oversized_ones() {
+        let small: Vec<f32> = (0..2 * 3 * 2).map(|v| v as f32).collect();
+        let big: Vec<f32> = (0..4 * 2 * 3).map(|v| 100.0 + v as f32).collect();
+        let rgb: Vec<u32> = (0..4 * 2 * 3).map(|v| v as u32 + 1).collect();
+        let a = atlas(&[(&small, &[], [2, 3, 2]), (&big, &rgb, [4, 2, 3])], 16).unwrap();
+        assert_eq!(a.size, [4, 3, 5]);
+        assert_eq!(a.z0, vec![0, 2]);
+        let texel = |x: usize, y: usize, z: usize| x + 4 * (y + 3 * z);
+        // Field 0's point (1, 2, 1) and field 1's point (3, 1, 2).
+        assert_eq!(a.density[texel(1, 2, 1)], (1 + 2 * (2 + 3)) as f32);
+        assert_eq!(a.rgb[texel(1, 2, 1)], 0);
+        let v = 3 + 4 * (1 + 2 * 2);
+        assert_eq!(a.density[texel(3, 1, 2 + 2)], big[v]);
+        assert_eq!(a.rgb[texel(3, 1, 2 + 2)], rgb[v]);
+        // Padding beside the narrower field stays empty.
+        assert_eq!(a.density[texel(3, 0, 0)], 0.0);
+        let e = atlas(&[(&big, &rgb, [4, 2, 3]), (&big, &rgb, [4, 2, 3])], 5).unwrap_err();
+        assert!(e.to_string().contains("4x2x6"), "{e}");
+        // No fields: one texel, to bind something.
+        assert_eq!(atlas(&[], 16).unwrap().size, [1, 1, 1]);
     }
 
     #[test]

@@ -28,6 +28,7 @@ use bevy::render::render_resource::{
 use bevy::render::renderer::{RenderContext, RenderDevice, ViewQuery};
 use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
 use bevy::shader::Shader;
+use std::sync::{Arc, Mutex};
 
 /// The composite pipeline: march textures -> view colour and depth.
 #[derive(Resource)]
@@ -107,15 +108,18 @@ pub(super) struct MarchTargets {
     depth: TextureView,
     composite: BindGroup,
     /// The march inputs (view uniform, layers, data generation) of the
-    /// image the textures hold; `None` before the first march.
-    shown: Option<Vec<u8>>,
+    /// image the textures hold; `None` before the first march. Set by the
+    /// pass that marched, not when the march is planned, so that a march
+    /// planned for a view that is then not drawn is not taken as done.
+    shown: Arc<Mutex<Option<Vec<u8>>>>,
 }
 
 /// This frame's work for a view.
 #[derive(Component)]
 pub(super) struct ViewDraw {
-    /// Bind group and pipeline of the march, when it has to run.
-    march: Option<(BindGroup, CachedRenderPipelineId)>,
+    /// Bind group, pipeline and inputs (`MarchTargets::shown`) of the
+    /// march, when it has to run.
+    march: Option<(BindGroup, CachedRenderPipelineId, Vec<u8>)>,
     composite: CachedRenderPipelineId,
     scene_ptr: usize,
     /// The textures hold a march at the viewport's full size.
@@ -159,7 +163,7 @@ fn new_targets(
         color,
         depth,
         composite: bind_group,
-        shown: None,
+        shown: Arc::default(),
     }
 }
 
@@ -199,6 +203,10 @@ fn gpu_view(view: &ExtractedView, cam: &RayMarchCamera, cache: &GpuSceneCache, s
         background: cache.background,
         march: [cache.step, cache.min_transmittance, 0.0, 0.0],
         counts: [cache.layers.len() as u32, 0, 0, 0],
+        atlas: cache.atlas.as_ref().map_or([1.0; 4], |a| {
+            let s = a.size.map(|n| 1.0 / n as f32);
+            [s[0], s[1], s[2], 0.0]
+        }),
     }
 }
 
@@ -225,6 +233,7 @@ fn march_bind_group(
     ) else {
         return None;
     };
+    let atlas = cache.atlas.as_ref()?;
     Some(device.create_bind_group(
         "isrf_raymarch_bind_group",
         &pipeline_cache.get_bind_group_layout(&pipeline.layout),
@@ -236,8 +245,24 @@ fn march_bind_group(
             bitmaps.as_entire_binding(),
             density.as_entire_binding(),
             colors.as_entire_binding(),
+            &atlas.density,
+            &atlas.rgb,
+            &atlas.sampler,
         )),
     ))
+}
+
+/// How many pipelines have compiled so far. Part of each view's march
+/// inputs, so that a view marches again whenever a pipeline finishes
+/// compiling: on lavapipe a march drawn while another pipeline compiles can
+/// come out empty (seen as a black editor view that stayed black because
+/// the view then stood still), and the march after the last compile is
+/// drawn with nothing compiling.
+fn compiled_pipelines(cache: &PipelineCache) -> u64 {
+    cache
+        .pipelines()
+        .filter(|p| matches!(p.state, CachedPipelineState::Ok(_)))
+        .count() as u64
 }
 
 /// Whether a pipeline is ready; reports a compile error to the UI.
@@ -278,7 +303,6 @@ pub(super) fn prepare_views(
     pipeline_cache: Res<PipelineCache>,
     device: Res<RenderDevice>,
     status: Res<SharedStatus>,
-    mut prewarmed: Local<Option<(bool, bool)>>,
 ) {
     let (Some(march_pipeline), Some(composite_pipeline)) = pipelines else {
         return;
@@ -288,53 +312,51 @@ pub(super) fn prepare_views(
             commands.entity(entity).remove::<ViewDraw>();
             continue;
         }
-        let key = MarchKey::of(&cache.layers, &cache.field_infos);
-        let exact = specialized.0.specialize(&pipeline_cache, &march_pipeline, key);
-        // Until the exact variant is compiled, the one with every feature
-        // draws, so that a newly needed feature never blanks the view.
-        let general = specialized
-            .0
-            .specialize(&pipeline_cache, &march_pipeline, key.general());
-        let kinds = (key.rgb, key.sh);
-        if *prewarmed != Some(kinds) {
-            for k in key.common() {
-                specialized.0.specialize(&pipeline_cache, &march_pipeline, k);
-            }
-            *prewarmed = Some(kinds);
-        }
-        let march_id = if pipeline_ready(&pipeline_cache, exact, &status) {
-            exact
-        } else {
-            general
-        };
+        let variant = MarchKey::of(&cache.layers, &cache.field_infos);
+        let march_id = specialized.0.specialize(&pipeline_cache, &march_pipeline, variant);
         let samples = msaa.map_or(1, |m| m.samples());
         let composite_id =
             specialized
                 .1
                 .specialize(&pipeline_cache, &composite_pipeline, (view.target_format, samples));
-        // (`&`, not `&&`: both report their compile errors.)
-        let ready =
-            pipeline_ready(&pipeline_cache, march_id, &status) & pipeline_ready(&pipeline_cache, composite_id, &status);
-        if !ready {
-            commands.entity(entity).remove::<ViewDraw>();
-            continue;
-        }
         let size = march_size(UVec2::new(view.viewport.z, view.viewport.w), cam.render_scale);
-        let mut targets = match targets {
+        let targets = match targets {
             Some(t) if t.size == size => t.clone(),
             _ => new_targets(&device, &pipeline_cache, &composite_pipeline, size),
         };
+        let has_image = targets.shown.lock().is_ok_and(|s| s.is_some());
+        // (`&`, not `&&`: both report their compile errors.)
+        let march_ready = pipeline_ready(&pipeline_cache, march_id, &status);
+        if !(march_ready & pipeline_ready(&pipeline_cache, composite_id, &status)) {
+            if march_ready || !has_image || pipeline_cache.get_render_pipeline(composite_id).is_none() {
+                commands.entity(entity).remove::<ViewDraw>();
+                continue;
+            }
+            // A variant the scene now needs is compiling: keep showing the
+            // last image meanwhile (not counted as showing this scene).
+            commands.entity(entity).insert((
+                targets,
+                ViewDraw {
+                    march: None,
+                    composite: composite_id,
+                    scene_ptr: 0,
+                    full: false,
+                },
+            ));
+            continue;
+        }
         let gv = gpu_view(view, cam, &cache, size);
         let mut key = bytemuck::bytes_of(&gv).to_vec();
         key.extend_from_slice(bytemuck::cast_slice(&cache.layers));
         key.extend_from_slice(&cache.generation.to_le_bytes());
+        key.extend_from_slice(&compiled_pipelines(&pipeline_cache).to_le_bytes());
         let mut march = None;
-        if targets.shown.as_ref() != Some(&key) {
+        let shown = targets.shown.lock().is_ok_and(|s| s.as_ref() == Some(&key));
+        if !shown {
             let Some(bg) = march_bind_group(&device, &pipeline_cache, &march_pipeline, &cache, &gv) else {
                 continue;
             };
-            march = Some((bg, march_id));
-            targets.shown = Some(key);
+            march = Some((bg, march_id, key));
         }
         commands.entity(entity).insert((
             targets,
@@ -377,7 +399,7 @@ pub(super) fn raymarch_pass(
     let Some(composite) = pipeline_cache.get_render_pipeline(draw.composite) else {
         return;
     };
-    if let Some((bind_group, id)) = &draw.march {
+    if let Some((bind_group, id, key)) = &draw.march {
         let Some(pipeline) = pipeline_cache.get_render_pipeline(*id) else {
             return;
         };
@@ -393,6 +415,9 @@ pub(super) fn raymarch_pass(
         pass.set_render_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
         pass.draw(0..3, 0..1);
+        if let Ok(mut shown) = targets.shown.lock() {
+            *shown = Some(key.clone());
+        }
     }
     let color_attachments = [Some(target.get_color_attachment())];
     let mut pass = ctx.begin_tracked_render_pass(RenderPassDescriptor {
