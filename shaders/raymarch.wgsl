@@ -7,10 +7,11 @@
 // ray from the camera; at each sample the layers' (masked, activated)
 // densities add and colours mix by density (D²NeRF), alpha = 1 - exp(-σ δ),
 // T_i = Π (1 - alpha_j), C = Σ T_i alpha_i c_i + T_N · background. Grids are
-// corner-aligned (src/field/geom.rs). Density and RGB colours (10-bit
-// unorm, within 5e-4 of their f16 values) are interpolated by the texture
-// unit's trilinear filter (exact f32 on lavapipe; real GPUs quantise the
-// weights, typically to 8 bits); SH coefficients (their f16 values) and
+// corner-aligned (src/field/geom.rs). Raw density (as f16 texels) and RGB
+// colours (10-bit unorm, within 5e-4 of their f16 values) are
+// interpolated by the texture unit's trilinear filter (f32 weights on
+// lavapipe; real GPUs quantise the weights, typically to 8 bits); SH
+// coefficients (their f16 values) and
 // the per-corner densities that masks need are read from storage buffers
 // and interpolated here in f32. Sparse colours renormalise over the stored
 // corners, as `ChannelGrid::sample` does. Masks weight the bitmap by

@@ -8,7 +8,8 @@
 //! field's part starts:
 //! - the density and RGB colour textures (3D, sampled with the GPU's
 //!   trilinear filter): every field's grid stacked along z in one
-//!   [`Atlas`], raw density and [`rgb10a2`] colours (alpha = stored, so
+//!   [`Atlas`], raw density (uploaded as f16) and [`rgb10a2`] colours
+//!   (alpha = stored, so
 //!   sparse colours renormalise over stored corners like
 //!   `ChannelGrid::sample`); [`GpuField::offsets`]`[3]` is the field's first
 //!   slice;
