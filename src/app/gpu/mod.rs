@@ -631,3 +631,67 @@ fn update_cache(
     status.update(|s| s.error = None);
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layer(field: u32, mask: u32, flags: u32, highlight: u32) -> GpuLayer {
+        GpuLayer {
+            info: [field, mask, 0, flags],
+            highlight: [highlight, 0, 0, 0],
+            ..Default::default()
+        }
+    }
+
+    fn field(kind: u32) -> pack::GpuField {
+        pack::GpuField {
+            res: [2, 2, 2, kind],
+            ..Default::default()
+        }
+    }
+
+    fn defs(key: MarchKey) -> Vec<String> {
+        key.shader_defs()
+            .into_iter()
+            .map(|d| match d {
+                ShaderDefVal::UInt(name, v) => format!("{name}={v}"),
+                ShaderDefVal::Bool(name, _) => name,
+                ShaderDefVal::Int(name, v) => format!("{name}={v}"),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn march_variants_hold_exactly_the_code_their_scene_uses() {
+        let rgb = field(pack::COLOR_SPARSE);
+        let sh = field(pack::COLOR_SH);
+        // A plain RGB field: the leanest variant.
+        let key = MarchKey::of(&[layer(0, pack::MASK_ALL, 0, 0)], &[rgb]);
+        assert_eq!(defs(key), ["MAX_LAYERS=1", "RGB"]);
+        // No layers (nothing loaded yet): drawn by the RGB variant.
+        assert_eq!(defs(MarchKey::of(&[], &[])), ["MAX_LAYERS=1", "RGB"]);
+        // A moved, selected object of an SH field: two masked layers, tinted.
+        let key = MarchKey::of(
+            &[
+                layer(0, pack::MASK_REMOVE, 0, 0),
+                layer(0, pack::MASK_KEEP, pack::LAYER_HIGHLIGHT, 0),
+            ],
+            &[sh],
+        );
+        assert_eq!(defs(key), ["MAX_LAYERS=2", "SH", "MASKS", "OVERLAY"]);
+        // An in-place selection (highlight mask) next to an edited RGB field.
+        let key = MarchKey::of(
+            &[
+                layer(0, pack::MASK_ALL, pack::LAYER_DIM, 1),
+                layer(1, pack::MASK_ALL, pack::LAYER_COLOR_EDIT, 0),
+                layer(1, pack::MASK_ALL, 0, 0),
+            ],
+            &[sh, rgb],
+        );
+        assert_eq!(
+            defs(key),
+            ["MAX_LAYERS=4", "RGB", "SH", "COLOR_EDIT", "OVERLAY", "HIGHLIGHT"]
+        );
+    }
+}
