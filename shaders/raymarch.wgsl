@@ -11,11 +11,10 @@
 // colours (10-bit unorm, within 5e-4 of their f16 values) are
 // interpolated by the texture unit's trilinear filter (f32 weights on
 // lavapipe; real GPUs quantise the weights, typically to 8 bits); SH
-// coefficients (their f16 values) and
-// the per-corner densities that masks need are read from storage buffers
-// and interpolated here in f32. Sparse colours renormalise over the stored
-// corners, as `ChannelGrid::sample` does. Masks weight the bitmap by
-// density, as `render::bitmap_fraction`.
+// coefficients (their f16 values) and the per-corner densities that masks
+// need are read from storage buffers and interpolated here in f32. Sparse
+// colours renormalise over the stored corners, as `ChannelGrid::sample`
+// does. Masks weight the bitmap by density, as `render::bitmap_fraction`.
 //
 // Empty space: each field has a grid of skip cells (2 voxels wide) holding
 // the Chebyshev distance to the nearest cell whose grid points have

@@ -166,7 +166,8 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     r.set_step(None);
     if let Some(object) = &stroke_object {
         // The session's first stroke also compiles the pipeline variant that
-        // tints a selection (lavapipe: about a second); later ones reuse it.
+        // tints a selection (on lavapipe about 0.1 s more); later ones reuse
+        // it.
         stroke_to_visible(
             &mut r,
             &a,

@@ -405,7 +405,7 @@ fn texture_3d_with(
         view_formats: &[],
     };
     let texture = device.create_texture(&desc);
-    let row = (data.len() / (size[1] * size[2])) as u32;
+    let row = size[0] as u32 * format.block_copy_size(None).unwrap_or(1);
     queue.write_texture(
         texture.as_image_copy(),
         data,
@@ -422,8 +422,7 @@ fn texture_3d_with(
 /// Uploads the atlas. Density goes up as f16: filterable on every GPU
 /// without an optional feature, at full filtering rate, in half the memory;
 /// raw densities keep 3 significant digits, far below what the tests'
-/// GPU-vs-CPU comparison can see. (lavapipe's f32 filtering also returned
-/// wrong densities for the first frames of the windowed editor.)
+/// GPU-vs-CPU comparison can see.
 fn upload_atlas(device: &RenderDevice, queue: &RenderQueue, a: &pack::Atlas) -> AtlasTextures {
     let half: Vec<u16> = a.density.iter().map(|&v| half::f16::from_f32(v).to_bits()).collect();
     let density = texture_3d_with(
@@ -451,8 +450,6 @@ fn upload_atlas(device: &RenderDevice, queue: &RenderQueue, a: &pack::Atlas) -> 
         min_filter: FilterMode::Linear,
         ..default()
     });
-    // Flush the uploads now, in their own submission.
-    queue.submit(std::iter::empty());
     AtlasTextures {
         density,
         rgb,

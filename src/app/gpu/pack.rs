@@ -9,10 +9,9 @@
 //! - the density and RGB colour textures (3D, sampled with the GPU's
 //!   trilinear filter): every field's grid stacked along z in one
 //!   [`Atlas`], raw density (uploaded as f16) and [`rgb10a2`] colours
-//!   (alpha = stored, so
-//!   sparse colours renormalise over stored corners like
-//!   `ChannelGrid::sample`); [`GpuField::offsets`]`[3]` is the field's first
-//!   slice;
+//!   (alpha = stored, so sparse colours renormalise over stored corners
+//!   like `ChannelGrid::sample`); [`GpuField::offsets`]`[3]` is the field's
+//!   first slice;
 //! - `density` (`array<f32>`): raw density per grid point again, in the
 //!   bricked order of [`bricked_index`], for masks (which weight each
 //!   corner's bit by its own density);
@@ -402,25 +401,27 @@ pub fn atlas(fields: &[(&[f32], &[u32], [usize; 3])], max_side: usize) -> Result
         w <= max_side && h <= max_side && d <= max_side,
         "the fields need a {w}x{h}x{d} texture, more than this GPU's 3D textures hold ({max_side} per side)"
     );
-    let mut out = Atlas {
-        size: [w, h, d],
-        density: vec![0.0; w * h * d],
-        rgb: vec![0; w * h * d],
-        z0,
-    };
-    for ((dens, rgb, r), &z0) in fields.iter().zip(&out.z0.clone()) {
+    let mut density = vec![0.0; w * h * d];
+    let mut texels = vec![0; w * h * d];
+    for ((dens, rgb, r), &first) in fields.iter().zip(&z0) {
+        // One row of the field (x fastest) at a time.
         for z in 0..r[2] {
             for y in 0..r[1] {
                 let src = r[0] * (y + r[1] * z);
-                let dst = w * (y + h * (z0 + z));
-                out.density[dst..dst + r[0]].copy_from_slice(&dens[src..src + r[0]]);
+                let dst = w * (y + h * (first + z));
+                density[dst..dst + r[0]].copy_from_slice(&dens[src..src + r[0]]);
                 if !rgb.is_empty() {
-                    out.rgb[dst..dst + r[0]].copy_from_slice(&rgb[src..src + r[0]]);
+                    texels[dst..dst + r[0]].copy_from_slice(&rgb[src..src + r[0]]);
                 }
             }
         }
     }
-    Ok(out)
+    Ok(Atlas {
+        size: [w, h, d],
+        density,
+        rgb: texels,
+        z0,
+    })
 }
 
 /// Concatenates packed fields; returns the field infos with absolute

@@ -252,19 +252,6 @@ fn march_bind_group(
     ))
 }
 
-/// How many pipelines have compiled so far. Part of each view's march
-/// inputs, so that a view marches again whenever a pipeline finishes
-/// compiling: on lavapipe a march drawn while another pipeline compiles can
-/// come out empty (seen as a black editor view that stayed black because
-/// the view then stood still), and the march after the last compile is
-/// drawn with nothing compiling.
-fn compiled_pipelines(cache: &PipelineCache) -> u64 {
-    cache
-        .pipelines()
-        .filter(|p| matches!(p.state, CachedPipelineState::Ok(_)))
-        .count() as u64
-}
-
 /// Whether a pipeline is ready; reports a compile error to the UI.
 fn pipeline_ready(cache: &PipelineCache, id: CachedRenderPipelineId, status: &SharedStatus) -> bool {
     if cache.get_render_pipeline(id).is_some() {
@@ -319,52 +306,47 @@ pub(super) fn prepare_views(
             specialized
                 .1
                 .specialize(&pipeline_cache, &composite_pipeline, (view.target_format, samples));
-        let size = march_size(UVec2::new(view.viewport.z, view.viewport.w), cam.render_scale);
+        // (Both checked: each reports its compile error.)
+        let march_ready = pipeline_ready(&pipeline_cache, march_id, &status);
+        if !pipeline_ready(&pipeline_cache, composite_id, &status) {
+            commands.entity(entity).remove::<ViewDraw>();
+            continue;
+        }
+        let viewport = UVec2::new(view.viewport.z, view.viewport.w);
+        let size = march_size(viewport, cam.render_scale);
         let targets = match targets {
             Some(t) if t.size == size => t.clone(),
             _ => new_targets(&device, &pipeline_cache, &composite_pipeline, size),
         };
-        let has_image = targets.shown.lock().is_ok_and(|s| s.is_some());
-        // (`&`, not `&&`: both report their compile errors.)
-        let march_ready = pipeline_ready(&pipeline_cache, march_id, &status);
-        if !(march_ready & pipeline_ready(&pipeline_cache, composite_id, &status)) {
-            if march_ready || !has_image || pipeline_cache.get_render_pipeline(composite_id).is_none() {
-                commands.entity(entity).remove::<ViewDraw>();
-                continue;
+        // Until a variant the scene now needs has compiled, the view keeps
+        // showing its last image (not counted as showing this scene).
+        let (mut march, mut scene_ptr, full) = (None, 0, march_ready && size == viewport);
+        if march_ready {
+            scene_ptr = cache.scene_ptr;
+            let gv = gpu_view(view, cam, &cache, size);
+            let mut key = bytemuck::bytes_of(&gv).to_vec();
+            key.extend_from_slice(bytemuck::cast_slice(&cache.layers));
+            key.extend_from_slice(&cache.generation.to_le_bytes());
+            if !targets.shown.lock().is_ok_and(|s| s.as_ref() == Some(&key)) {
+                let Some(bg) = march_bind_group(&device, &pipeline_cache, &march_pipeline, &cache, &gv) else {
+                    continue;
+                };
+                march = Some((bg, march_id, key));
             }
-            // A variant the scene now needs is compiling: keep showing the
-            // last image meanwhile (not counted as showing this scene).
-            commands.entity(entity).insert((
-                targets,
-                ViewDraw {
-                    march: None,
-                    composite: composite_id,
-                    scene_ptr: 0,
-                    full: false,
-                },
-            ));
+        }
+        let has_image = targets.shown.lock().is_ok_and(|s| s.is_some());
+        let mut view_entity = commands.entity(entity);
+        if march.is_none() && !has_image {
+            view_entity.insert(targets).remove::<ViewDraw>();
             continue;
         }
-        let gv = gpu_view(view, cam, &cache, size);
-        let mut key = bytemuck::bytes_of(&gv).to_vec();
-        key.extend_from_slice(bytemuck::cast_slice(&cache.layers));
-        key.extend_from_slice(&cache.generation.to_le_bytes());
-        key.extend_from_slice(&compiled_pipelines(&pipeline_cache).to_le_bytes());
-        let mut march = None;
-        let shown = targets.shown.lock().is_ok_and(|s| s.as_ref() == Some(&key));
-        if !shown {
-            let Some(bg) = march_bind_group(&device, &pipeline_cache, &march_pipeline, &cache, &gv) else {
-                continue;
-            };
-            march = Some((bg, march_id, key));
-        }
-        commands.entity(entity).insert((
+        view_entity.insert((
             targets,
             ViewDraw {
                 march,
                 composite: composite_id,
-                scene_ptr: cache.scene_ptr,
-                full: size == UVec2::new(view.viewport.z, view.viewport.w),
+                scene_ptr,
+                full,
             },
         ));
     }
