@@ -8,7 +8,7 @@ use isrf::camera::Ray;
 use isrf::field::{Aabb, GridGeom};
 use isrf::render::{render_rays, RenderOptions, Scene};
 use isrf::train::march::{backward, forward, GradBuf, MarchOpts, Scratch};
-use isrf::train::model::{bit, res_for, Model, PRUNED_RAW};
+use isrf::train::model::{bit, res_for, Model, Slots, PRUNED_RAW};
 use isrf::train::optim::{adam_step, corrected_lr, merge_marks, AdamParams, Moments};
 use isrf::train::step_of;
 use isrf::train::vm::{VmAppearance, VmShape};
@@ -457,25 +457,33 @@ fn export_round_trips_through_a_field_file() {
 
 #[test]
 fn sparse_adam_updates_only_touched_active_points() {
-    let n = 300;
+    // 300 grid points, point 250 pruned: 299 slots; slot s is point s
+    // below 250 and point s + 1 above.
+    let n: usize = 300;
+    let res = [n, 1, 1];
+    let mut active = vec![u64::MAX; n.div_ceil(64)];
+    active[250 >> 6] &= !(1 << (250 & 63));
+    let slots = Slots::new(res, &active);
+    assert_eq!(slots.len(), n - 1);
+    assert_eq!(slots.slot(250), None);
+    assert_eq!(slots.slot(251), Some(250));
+    let a = slots.len();
     let mut p = vec![1.0f32; n];
-    let mut mom = Moments::new(n);
-    let mut g0 = vec![0.0f32; n];
-    let mut g1 = vec![0.0f32; n];
-    let mut m0 = vec![0u64; n.div_ceil(64)];
-    let mut m1 = vec![0u64; n.div_ceil(64)];
+    let mut mom = Moments::new(a);
+    let mut g0 = vec![0.0f32; a];
+    let mut g1 = vec![0.0f32; a];
+    let mut m0 = vec![0u64; a.div_ceil(64)];
+    let mut m1 = vec![0u64; a.div_ceil(64)];
     g0[3] = 1.0;
     m0[0] |= 1 << 3;
     g1[3] = 1.0;
     m1[0] |= 1 << 3;
     g1[200] = -2.0;
     m1[200 >> 6] |= 1 << (200 & 63);
-    g1[250] = 5.0; // touched but inactive: gradient dropped, value kept
-    m1[250 >> 6] |= 1 << (250 & 63);
+    g1[260] = 5.0; // slot 260 is point 261
+    m1[260 >> 6] |= 1 << (260 & 63);
     let touched = merge_marks(&mut [&mut m0, &mut m1]);
     assert!(m0.iter().chain(&m1).all(|&w| w == 0), "marks are cleared");
-    let mut active = vec![u64::MAX; n.div_ceil(64)];
-    active[250 >> 6] &= !(1 << (250 & 63));
     let hp = AdamParams::default();
     let lr = corrected_lr(0.1, 1, hp);
     adam_step(
@@ -484,7 +492,7 @@ fn sparse_adam_updates_only_touched_active_points() {
         &mut [&mut g0, &mut g1],
         1,
         &touched,
-        Some(&active),
+        Some(&slots),
         lr,
         hp,
         (-10.0, 10.0),
@@ -492,10 +500,19 @@ fn sparse_adam_updates_only_touched_active_points() {
     // First Adam step moves by lr against the gradient's sign.
     assert!((p[3] - 0.9).abs() < 1e-5, "{}", p[3]);
     assert!((p[200] - 1.1).abs() < 1e-5, "{}", p[200]);
-    assert_eq!(p[250], 1.0);
+    assert!((p[261] - 0.9).abs() < 1e-5, "{}", p[261]);
+    assert_eq!(p[250], 1.0, "the pruned point keeps its value");
     let moved = p.iter().filter(|&&v| v != 1.0).count();
-    assert_eq!(moved, 2);
+    assert_eq!(moved, 3);
     assert!(g0.iter().chain(&g1).all(|&v| v == 0.0), "gradients are zeroed");
+    // Pruning point 3 renumbers the moments; the others keep theirs.
+    let mut fewer = active.clone();
+    fewer[0] &= !(1 << 3);
+    let slots2 = Slots::new(res, &fewer);
+    let mom2 = mom.remap(&slots, &slots2, 1);
+    assert_eq!(mom2.m.len(), n - 2);
+    assert_eq!(mom2.m[slots2.slot(200).unwrap()], mom.m[200]);
+    assert_eq!(mom2.v[slots2.slot(261).unwrap()], mom.v[260]);
 }
 
 #[test]

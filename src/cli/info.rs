@@ -15,9 +15,10 @@ pub fn run(a: Args) -> Result<()> {
     let g = field.geom();
     let b = g.bounds;
     println!("{}", a.field.display());
+    let (meta, _) = io::read_metadata(&a.field)?;
     println!(
         "  format      isrf-field v{}  ({:.1} MB on disk)",
-        io::VERSION,
+        meta.get("version").map_or("?", String::as_str),
         len as f64 / 1e6
     );
     println!(
@@ -33,6 +34,14 @@ pub fn run(a: Args) -> Result<()> {
         g.spacing().x
     );
     println!("  activation  {}", serde_json::to_string(&header.activation)?);
+    let density = match (header.sparse_density(), header.occupied) {
+        (true, Some(n)) => format!(
+            "f32, sparse ({n} points stored, {:.2} %)",
+            100.0 * n as f64 / g.len() as f64
+        ),
+        _ => "f32, dense".to_string(),
+    };
+    println!("  density     {density}");
     let layout = |l: &Layout| if matches!(l, Layout::Dense) { "dense" } else { "sparse" };
     let app = match &field.appearance {
         Appearance::Rgb(c) => format!("rgb, {} {:?}", layout(&c.layout), c.geom.res),
@@ -62,5 +71,14 @@ pub fn run(a: Args) -> Result<()> {
         100.0 * occupied as f64 / g.len() as f64
     );
     println!("  memory      {:.1} MB", field.memory_bytes() as f64 / 1e6);
+    // What the file stores against the same field with every grid dense.
+    let stored = io::data_section_bytes(&a.field)?;
+    let dense = io::tensor_bytes(&header, true);
+    println!("  stored: {stored} bytes of tensors ({:.1} MB; file {len} bytes)", stored as f64 / 1e6);
+    println!(
+        "  dense equivalent: {dense} bytes ({:.1} MB; {:.1}x the stored size)",
+        dense as f64 / 1e6,
+        dense as f64 / stored.max(1) as f64
+    );
     Ok(())
 }

@@ -91,6 +91,11 @@ pub struct Args {
     /// Random seed of the ray batches.
     #[arg(long)]
     pub seed: Option<u64>,
+    /// Write every grid dense (as before sparse field files; about 8× larger
+    /// on lego). By default appearance and features are stored for occupied
+    /// voxels only, which renders and segments the same.
+    #[arg(long)]
+    pub dense_field: bool,
 }
 
 /// `<out dir>/<out stem><suffix>`.
@@ -323,17 +328,23 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
 
 fn finish(session: &Session, a: &Args, ckpt: &Path) -> Result<()> {
     let t = &session.trainer;
-    let field = Arc::new(t.model.to_field());
+    let field = Arc::new(if a.dense_field {
+        t.model.to_field()
+    } else {
+        t.model.to_sparse_field()
+    });
     field.save(&a.out)?;
+    let file_bytes = std::fs::metadata(&a.out).map_or(0, |m| m.len());
     session.save_checkpoint(ckpt)?;
     let plot = sibling(&a.out, ".train.png");
     save_plot(&plot, &t.history, &session.evals)?;
     let seconds: f64 = t.history.iter().map(|s| s.seconds as f64).sum();
     let rays: f64 = t.history.iter().map(|s| s.rays as f64).sum();
     eprintln!(
-        "field {} written ({:?} grid, {:.1} MB); checkpoint {}; plot {}",
+        "field {} written ({:?} grid, {:.1} MB file, {:.1} MB in memory); checkpoint {}; plot {}",
         a.out.display(),
         field.res(),
+        file_bytes as f64 / 1e6,
         field.memory_bytes() as f64 / 1e6,
         ckpt.display(),
         plot.display()

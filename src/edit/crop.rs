@@ -163,6 +163,7 @@ struct Shared<'a> {
 fn crop_channels(g: &ChannelGrid, shared: &Shared, cb: &CropBox) -> Result<ChannelGrid> {
     match &g.layout {
         Layout::Dense => Ok(crop_dense(g, cb)),
+        Layout::Sparse(_) if g.geom.res != shared.res => Ok(crop_sampled(g, cb)),
         Layout::Sparse(ix) => {
             let (Some(old), Some(new)) = (shared.old, shared.new) else {
                 return Err(Error::invalid("a grid is sparse but the field has no occupancy index"));
@@ -253,6 +254,28 @@ fn crop_dense(g: &ChannelGrid, cb: &CropBox) -> ChannelGrid {
                 }
             }
         });
+    ChannelGrid::dense(geom, ch, data)
+}
+
+/// A sparse grid with its own index (features at their own resolution):
+/// the points [`crop_dense`] would make, each sampled from the grid as the
+/// renderer does (renormalised over stored corners); the result is dense.
+fn crop_sampled(g: &ChannelGrid, cb: &CropBox) -> ChannelGrid {
+    let res = [0, 1, 2].map(|a| axis_map(&g.geom, cb, a).len());
+    let geom = GridGeom::new(cb.geom.bounds, res);
+    let ch = g.channels;
+    let mut data = vec![f16::ZERO; geom.len() * ch];
+    data.par_chunks_mut(ch.max(1))
+        .enumerate()
+        .for_each_init(
+            || vec![0.0f32; ch],
+            |tmp, (i, row)| {
+                g.sample(geom.point_of(i), tmp);
+                for (o, &v) in row.iter_mut().zip(tmp.iter()) {
+                    *o = f16::from_f32(v);
+                }
+            },
+        );
     ChannelGrid::dense(geom, ch, data)
 }
 

@@ -150,6 +150,20 @@ impl Bitmap {
         }
         any.then_some((lo, hi))
     }
+    /// Voxels within Chebyshev distance 1 of a set voxel (the 3×3×3
+    /// neighbourhood), e.g. the corners of every cell that touches a set
+    /// voxel.
+    pub fn dilated(&self) -> Bitmap {
+        let [nx, ny, nz] = self.res;
+        let near = |c: usize, m: usize| c.saturating_sub(1)..=(c + 1).min(m - 1);
+        Bitmap::from_fn(self.res, |i| {
+            if self.get(i) {
+                return true;
+            }
+            let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+            near(z, nz).any(|zz| near(y, ny).any(|yy| near(x, nx).any(|xx| self.get(xx + nx * (yy + ny * zz)))))
+        })
+    }
     fn clear_tail(&mut self) {
         let n = self.len();
         if n % 64 != 0 {

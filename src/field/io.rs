@@ -5,13 +5,22 @@
 //!
 //! | name | dtype | shape |
 //! |---|---|---|
-//! | `density` | F32 | `[nz, ny, nx]` raw (pre-activation) |
+//! | `density` | F32 | `[nz, ny, nx]` raw (pre-activation), or `[occupied]` when sparse |
 //! | `occupancy` | U8 | packed bits (x fastest, little-endian u64 words); only with sparse grids |
 //! | `app.rgb` / `app.sh` | F16 | dense `[nz, ny, nx, C]` or sparse `[occupied, C]` |
 //! | `app.vm.plane{m}`, `app.vm.line{m}`, `app.vm.basis` | F32 | `[R, nb, na]`, `[R, nc]`, `[ΣR, D]` |
 //! | `app.mlp.{i}.weight`, `app.mlp.{i}.bias` | F32 | `[out, in]`, `[out]` |
 //! | `feat.grid` | F16 | like `app.rgb` |
+//! | `feat.occupancy` | U8 | packed bits at the feature resolution; only for a sparse feature grid with its own index |
 //! | `feat.vm.*` | F32 | like `app.vm.*` |
+//!
+//! Version 2 added sparse density (header `density: {layout: sparse, fill}`:
+//! the occupied points are stored, every other point holds `fill`) and
+//! sparse feature grids at their own resolution (header `feature_occupied`
+//! and the `feat.occupancy` tensor; without them a sparse feature grid uses
+//! `occupancy`, at the density resolution). A file that uses neither is
+//! written as version 1, so older readers keep reading it; version 1 files
+//! (all dense) read as before.
 //!
 //! Reading validates the header, every resolution and the exact byte size the
 //! header implies *before* reading the tensor data, then checks every tensor's
@@ -22,18 +31,21 @@ use super::geom::{check_res, Aabb, GridGeom};
 use super::grid::{Activation, ChannelGrid, DensityGrid, Layout};
 use super::vm::{Linear, Mlp, VmGrid, MODE_AXES};
 use super::{Appearance, Features, Field};
-use crate::error::{write_atomic, Error, Result};
+use crate::error::{Error, Result};
 use glam::Vec3;
 use half::f16;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
+use rayon::prelude::*;
+use std::borrow::Cow;
 use std::collections::HashMap;
 use std::io::Read;
 use std::path::Path;
 use std::sync::Arc;
 
 pub const FORMAT: &str = "isrf-field";
-pub const VERSION: u32 = 1;
+/// Newest version this build reads and writes (see the module docs).
+pub const VERSION: u32 = 2;
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(rename_all = "lowercase")]
@@ -79,6 +91,14 @@ pub enum FeaturesHeader {
     Vm(VmHeader),
 }
 
+/// How the density grid is stored (absent: dense, version 1).
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct DensityHeader {
+    pub layout: LayoutKind,
+    /// Raw value of every point the file does not store (sparse only).
+    pub fill: f32,
+}
+
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Header {
     pub bounds: [[f32; 3]; 2],
@@ -89,34 +109,62 @@ pub struct Header {
     /// Number of set bits in `occupancy` (sparse grids only).
     #[serde(default)]
     pub occupied: Option<usize>,
+    /// Density storage; `None`: dense.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub density: Option<DensityHeader>,
+    /// Number of set bits in `feat.occupancy` (a sparse feature grid with
+    /// its own index).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub feature_occupied: Option<usize>,
+}
+
+impl Header {
+    /// True when the density grid is stored for the occupied points only.
+    pub fn sparse_density(&self) -> bool {
+        self.density.as_ref().is_some_and(|d| d.layout == LayoutKind::Sparse)
+    }
+    /// Oldest format version that can read a file with this header.
+    pub fn min_version(&self) -> u32 {
+        if self.sparse_density() || self.feature_occupied.is_some() {
+            2
+        } else {
+            1
+        }
+    }
 }
 
 // ---------------------------------------------------------------- writing
 
-struct Out {
+/// Named tensors to write, borrowing the field's arrays where they are
+/// stored as they are (no copy of a large grid while saving).
+struct Out<'a> {
     names: Vec<String>,
-    tensors: Vec<(Dtype, Vec<usize>, Vec<u8>)>,
+    tensors: Vec<(Dtype, Vec<usize>, Cow<'a, [u8]>)>,
 }
 
-impl Out {
-    fn push(&mut self, name: impl Into<String>, dtype: Dtype, shape: Vec<usize>, bytes: Vec<u8>) {
+impl<'a> Out<'a> {
+    fn push(&mut self, name: impl Into<String>, dtype: Dtype, shape: Vec<usize>, bytes: Cow<'a, [u8]>) {
         self.names.push(name.into());
         self.tensors.push((dtype, shape, bytes));
     }
-    fn channel_grid(&mut self, name: &str, g: &ChannelGrid) -> ChannelHeader {
+    fn bits(&mut self, name: &str, bits: &Bitmap) {
+        let bytes = bits.to_bytes();
+        self.push(name, Dtype::U8, vec![bytes.len()], Cow::Owned(bytes));
+    }
+    fn channel_grid(&mut self, name: &str, g: &'a ChannelGrid) -> ChannelHeader {
         let [nx, ny, nz] = g.geom.res;
         let (layout, shape) = match g.layout {
             Layout::Dense => (LayoutKind::Dense, vec![nz, ny, nx, g.channels]),
             Layout::Sparse(_) => (LayoutKind::Sparse, vec![g.slots(), g.channels]),
         };
-        self.push(name, Dtype::F16, shape, bytemuck::cast_slice(&g.data).to_vec());
+        self.push(name, Dtype::F16, shape, Cow::Borrowed(bytemuck::cast_slice(&g.data)));
         ChannelHeader {
             layout,
             resolution: g.geom.res,
             channels: g.channels,
         }
     }
-    fn vm(&mut self, prefix: &str, v: &VmGrid) -> VmHeader {
+    fn vm(&mut self, prefix: &str, v: &'a VmGrid) -> VmHeader {
         for (m, &(a, b, c)) in MODE_AXES.iter().enumerate() {
             let r = v.comps[m];
             let res = v.geom.res;
@@ -147,25 +195,89 @@ impl Out {
     }
 }
 
-fn f32_bytes(v: &[f32]) -> Vec<u8> {
-    bytemuck::cast_slice(v).to_vec()
+fn f32_bytes(v: &[f32]) -> Cow<'_, [u8]> {
+    Cow::Borrowed(bytemuck::cast_slice(v))
 }
 
-/// Serialises a field to safetensors bytes.
-pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
+/// True when `ix` is the field's occupancy index (the same object, or the
+/// same bits at the same resolution).
+fn is_shared(ix: &Arc<RankIndex>, occ: Option<&Arc<RankIndex>>) -> bool {
+    occ.is_some_and(|o| Arc::ptr_eq(ix, o) || ix.bits() == o.bits())
+}
+
+/// The single raw value every point outside `occ` holds, if there is one
+/// (then the file stores the density for the occupied points only).
+fn uniform_fill(raw: &[f32], occ: &RankIndex) -> Option<f32> {
+    let bits = occ.bits();
+    let first = (0..raw.len()).find(|&i| !bits.get(i))?;
+    let fill = raw[first];
+    let uniform = raw
+        .par_iter()
+        .enumerate()
+        .all(|(i, &r)| bits.get(i) || r.to_bits() == fill.to_bits());
+    (uniform && fill.is_finite()).then_some(fill)
+}
+
+/// The density tensor: sparse over the occupancy when the rest is uniform.
+fn density_tensor<'a>(out: &mut Out<'a>, field: &'a Field) -> Option<DensityHeader> {
+    let [nx, ny, nz] = field.res();
+    let raw = &field.density.raw;
+    if let Some(occ) = &field.occupancy {
+        if let Some(fill) = uniform_fill(raw, occ) {
+            let kept: Vec<f32> = occ.bits().ones().map(|i| raw[i]).collect();
+            out.push(
+                "density",
+                Dtype::F32,
+                vec![kept.len()],
+                Cow::Owned(bytemuck::cast_slice(&kept).to_vec()),
+            );
+            return Some(DensityHeader {
+                layout: LayoutKind::Sparse,
+                fill,
+            });
+        }
+    }
+    out.push("density", Dtype::F32, vec![nz, ny, nx], f32_bytes(raw));
+    None
+}
+
+/// The field's tensors and header.
+fn plan(field: &Field) -> Result<(Out<'_>, Header)> {
     let mut out = Out {
         names: vec![],
         tensors: vec![],
     };
-    let [nx, ny, nz] = field.res();
-    out.push("density", Dtype::F32, vec![nz, ny, nx], f32_bytes(&field.density.raw));
-    if let Some(occ) = &field.occupancy {
-        let bytes = occ.bits().to_bytes();
-        out.push("occupancy", Dtype::U8, vec![bytes.len()], bytes);
+    let density = density_tensor(&mut out, field);
+    let occ = field.occupancy.as_ref();
+    if let Some(o) = occ {
+        crate::ensure!(
+            o.bits().res() == field.res(),
+            "the field's occupancy has resolution {:?}, its density grid {:?}",
+            o.bits().res(),
+            field.res()
+        );
+        out.bits("occupancy", o.bits());
     }
+    // Sparse appearance always uses the field's index; a sparse feature grid
+    // may have its own (at its own resolution).
+    let check_shared = |g: &ChannelGrid, what: &str| -> Result<()> {
+        if let Layout::Sparse(ix) = &g.layout {
+            crate::ensure!(
+                is_shared(ix, occ),
+                "the sparse {what} grid does not use the field's occupancy index"
+            );
+        }
+        Ok(())
+    };
     let appearance = match &field.appearance {
-        Appearance::Rgb(g) => AppearanceHeader::Rgb(out.channel_grid("app.rgb", g)),
-        Appearance::Sh2(g) => AppearanceHeader::Sh2(out.channel_grid("app.sh", g)),
+        Appearance::Rgb(g) => {
+            check_shared(g, "appearance")?;
+            AppearanceHeader::Rgb(out.channel_grid("app.rgb", g))
+        }
+        Appearance::Sh2(g) => {
+            check_shared(g, "appearance")?;
+            AppearanceHeader::Sh2(out.channel_grid("app.sh", g))
+        }
         Appearance::Vm { grid, mlp } => {
             let grid = out.vm("app.vm", grid);
             let mut layers = vec![];
@@ -194,8 +306,17 @@ pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
             }
         }
     };
+    let mut feature_occupied = None;
     let features = match &field.features {
-        Some(Features::Grid(g)) => Some(FeaturesHeader::Grid(out.channel_grid("feat.grid", g))),
+        Some(Features::Grid(g)) => {
+            if let Layout::Sparse(ix) = &g.layout {
+                if !is_shared(ix, occ) {
+                    out.bits("feat.occupancy", ix.bits());
+                    feature_occupied = Some(ix.count());
+                }
+            }
+            Some(FeaturesHeader::Grid(out.channel_grid("feat.grid", g)))
+        }
         Some(Features::Vm(v)) => Some(FeaturesHeader::Vm(out.vm("feat.vm", v))),
         None => None,
     };
@@ -206,16 +327,43 @@ pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
         activation: field.density.activation,
         appearance,
         features,
-        occupied: field.occupancy.as_ref().map(|o| o.count()),
+        occupied: occ.map(|o| o.count()),
+        density,
+        feature_occupied,
     };
+    Ok((out, header))
+}
+
+fn field_metadata(header: &Header) -> HashMap<String, String> {
     let mut meta = HashMap::new();
     meta.insert("format".to_string(), FORMAT.to_string());
-    meta.insert("version".to_string(), VERSION.to_string());
+    meta.insert("version".to_string(), header.min_version().to_string());
     meta.insert(
         "header".to_string(),
-        serde_json::to_string(&header).expect("header serialises"),
+        serde_json::to_string(header).expect("header serialises"),
     );
-    serialize(&out.names, &out.tensors, meta)
+    meta
+}
+
+/// Serialises a field to safetensors bytes (in memory; [`save`] streams).
+pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
+    let (out, header) = plan(field)?;
+    let v = views(&out.names, out.tensors.iter().map(|(d, s, b)| (*d, s, &b[..])))?;
+    let bytes = safetensors::serialize(v, Some(field_metadata(&header)))
+        .map_err(|e| Error::invalid(format!("cannot serialise: {e}")))?;
+    Ok(canonical_header(bytes))
+}
+
+fn views<'a>(
+    names: &[String],
+    tensors: impl Iterator<Item = (Dtype, &'a Vec<usize>, &'a [u8])>,
+) -> Result<Vec<(String, TensorView<'a>)>> {
+    names
+        .iter()
+        .zip(tensors)
+        .map(|(n, (d, s, b))| TensorView::new(d, s.clone(), b).map(|v| (n.clone(), v)))
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| Error::invalid(format!("cannot build tensor: {e}")))
 }
 
 /// Serialises named tensors with metadata (shared by every isrf file kind).
@@ -224,15 +372,62 @@ pub fn serialize(
     tensors: &[(Dtype, Vec<usize>, Vec<u8>)],
     meta: HashMap<String, String>,
 ) -> Result<Vec<u8>> {
-    let views: Vec<(String, TensorView)> = names
-        .iter()
-        .zip(tensors)
-        .map(|(n, (d, s, b))| TensorView::new(*d, s.clone(), b).map(|v| (n.clone(), v)))
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|e| Error::invalid(format!("cannot build tensor: {e}")))?;
+    let v = views(names, tensors.iter().map(|(d, s, b)| (*d, s, &b[..])))?;
     let bytes =
-        safetensors::serialize(views, Some(meta)).map_err(|e| Error::invalid(format!("cannot serialise: {e}")))?;
+        safetensors::serialize(v, Some(meta)).map_err(|e| Error::invalid(format!("cannot serialise: {e}")))?;
     Ok(canonical_header(bytes))
+}
+
+/// Writes named tensors with metadata to `path` atomically, streaming the
+/// tensor data from the borrowed slices: the same bytes as [`serialize`]
+/// without holding a copy of the whole file in memory (training
+/// checkpoints and fields are hundreds of MB).
+pub fn write_tensors(
+    path: &Path,
+    names: &[String],
+    tensors: &[(Dtype, Vec<usize>, &[u8])],
+    meta: HashMap<String, String>,
+) -> Result<()> {
+    let v = views(names, tensors.iter().map(|(d, s, b)| (*d, s, *b)))?;
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+    let tmp = tempfile::NamedTempFile::new_in(&dir)
+        .map_err(|e| Error::io(&dir, e))?
+        .into_temp_path();
+    safetensors::serialize_to_file(v, Some(meta), &tmp)
+        .map_err(|e| Error::invalid(format!("cannot write {}: {e}", path.display())))?;
+    canonicalise_file(&tmp).map_err(|e| Error::io(path, e))?;
+    tmp.persist(path).map_err(|e| Error::io(path, e.error))?;
+    Ok(())
+}
+
+/// [`canonical_header`] applied to a file in place, then synced. The sorted
+/// header has the same length (same keys and values, same padding), so only
+/// the header bytes are rewritten; should it ever differ, the whole file is.
+fn canonicalise_file(path: &Path) -> std::io::Result<()> {
+    use std::io::{Seek, SeekFrom, Write};
+    let mut f = std::fs::OpenOptions::new().read(true).write(true).open(path)?;
+    let mut n = [0u8; 8];
+    f.read_exact(&mut n)?;
+    let n = u64::from_le_bytes(n) as usize;
+    let mut header = vec![0u8; n];
+    f.read_exact(&mut header)?;
+    let mut prefix = (n as u64).to_le_bytes().to_vec();
+    prefix.extend_from_slice(&header);
+    let fixed = canonical_header(prefix);
+    if fixed.len() == 8 + n {
+        f.seek(SeekFrom::Start(0))?;
+        f.write_all(&fixed)?;
+    } else {
+        drop(f);
+        let all = canonical_header(std::fs::read(path)?);
+        std::fs::write(path, all)?;
+        f = std::fs::File::open(path)?;
+    }
+    f.sync_all()
 }
 
 /// Rewrites the JSON header with sorted keys. `safetensors` writes the
@@ -257,9 +452,11 @@ fn canonical_header(bytes: Vec<u8>) -> Vec<u8> {
     out
 }
 
-/// Writes a field atomically.
+/// Writes a field atomically (streamed: no in-memory copy of the file).
 pub fn save(field: &Field, path: &Path) -> Result<()> {
-    write_atomic(path, &to_bytes(field)?)
+    let (out, header) = plan(field)?;
+    let tensors: Vec<(Dtype, Vec<usize>, &[u8])> = out.tensors.iter().map(|(d, s, b)| (*d, s.clone(), &b[..])).collect();
+    write_tensors(path, &out.names, &tensors, field_metadata(&header))
 }
 
 // ---------------------------------------------------------------- reading
@@ -292,6 +489,23 @@ pub fn read_metadata(path: &Path) -> Result<(HashMap<String, String>, u64)> {
         .and_then(|m| serde_json::from_value::<HashMap<String, String>>(m.clone()).ok())
         .unwrap_or_default();
     Ok((meta, len))
+}
+
+/// Bytes of a safetensors file's data section: the stored tensors, without
+/// the 8-byte length prefix and the JSON header.
+pub fn data_section_bytes(path: &Path) -> Result<u64> {
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = f.metadata().map_err(|e| Error::io(path, e))?.len();
+    let mut n = [0u8; 8];
+    f.read_exact(&mut n)
+        .map_err(|_| Error::bad_file(path, "truncated: too short for a safetensors file"))?;
+    let n = u64::from_le_bytes(n);
+    len.checked_sub(8).and_then(|l| l.checked_sub(n)).ok_or_else(|| {
+        Error::bad_file(
+            path,
+            format!("corrupt or truncated: header length {n} does not fit in a {len}-byte file"),
+        )
+    })
 }
 
 /// Checks `format` and `version` in a metadata map.
@@ -431,10 +645,10 @@ fn validate_header(h: &Header) -> Result<()> {
             "{what}: {} channels is out of range",
             c.channels
         );
-        if c.layout == LayoutKind::Sparse {
+        if c.layout == LayoutKind::Sparse && !(what == "features" && h.feature_occupied.is_some()) {
             crate::ensure!(
                 c.resolution == h.resolution,
-                "{what}: sparse grids must have the density resolution"
+                "{what}: sparse grids must have the density resolution (or, for features, their own occupancy)"
             );
             crate::ensure!(
                 h.occupied.is_some(),
@@ -510,6 +724,24 @@ fn validate_header(h: &Header) -> Result<()> {
         let n: usize = h.resolution.iter().product();
         crate::ensure!(o <= n, "occupied count {o} exceeds the grid size {n}");
     }
+    if let Some(d) = &h.density {
+        crate::ensure!(d.fill.is_finite(), "density fill value {} is not finite", d.fill);
+        crate::ensure!(
+            d.layout == LayoutKind::Dense || h.occupied.is_some(),
+            "the density is sparse but the header has no occupied count"
+        );
+    }
+    if let Some(o) = h.feature_occupied {
+        let Some(FeaturesHeader::Grid(c)) = &h.features else {
+            return Err(Error::invalid("feature_occupied is set but the features are not a grid"));
+        };
+        crate::ensure!(
+            c.layout == LayoutKind::Sparse,
+            "feature_occupied is set but the feature grid is dense"
+        );
+        let n: usize = c.resolution.iter().product();
+        crate::ensure!(o <= n, "feature occupied count {o} exceeds the feature grid size {n}");
+    }
     Ok(())
 }
 
@@ -532,16 +764,31 @@ fn vm_bytes(v: &VmHeader) -> u64 {
 
 /// Lower bound on the tensor bytes a header implies.
 fn expected_data_bytes(h: &Header) -> u64 {
-    let occ = h.occupied.unwrap_or(0);
-    let mut n = (h.resolution.iter().product::<usize>() * 4) as u64;
+    tensor_bytes(h, false)
+}
+
+/// Bytes of the tensors a header describes (occupancy bits left out), or
+/// with `dense` what they would take with every grid stored dense (density
+/// in f32, channel grids in f16): the dense-equivalent size.
+pub fn tensor_bytes(h: &Header, dense: bool) -> u64 {
+    let points = h.resolution.iter().product::<usize>();
+    let occ = if dense { points } else { h.occupied.unwrap_or(0) };
+    let dense_layout = |c: &ChannelHeader| ChannelHeader {
+        layout: LayoutKind::Dense,
+        ..c.clone()
+    };
+    let density_points = if h.sparse_density() && !dense { occ } else { points };
+    let mut n = (density_points * 4) as u64;
     n += match &h.appearance {
+        AppearanceHeader::Rgb(c) | AppearanceHeader::Sh2(c) if dense => channel_bytes(&dense_layout(c), 0),
         AppearanceHeader::Rgb(c) | AppearanceHeader::Sh2(c) => channel_bytes(c, occ),
         AppearanceHeader::Vm { grid, mlp } => {
             vm_bytes(grid) + mlp.layers.iter().map(|l| ((l[0] + 1) * l[1] * 4) as u64).sum::<u64>()
         }
     };
     n += match &h.features {
-        Some(FeaturesHeader::Grid(c)) => channel_bytes(c, occ),
+        Some(FeaturesHeader::Grid(c)) if dense => channel_bytes(&dense_layout(c), 0),
+        Some(FeaturesHeader::Grid(c)) => channel_bytes(c, h.feature_occupied.unwrap_or(occ)),
         Some(FeaturesHeader::Vm(v)) => vm_bytes(v),
         None => 0,
     };
@@ -588,6 +835,20 @@ fn read_vm(t: &Tensors, prefix: &str, v: &VmHeader, bounds: Aabb) -> Result<VmGr
     })
 }
 
+/// Reads a packed occupancy tensor at `res` and checks its count.
+fn read_occupancy(t: &Tensors, name: &str, res: [usize; 3], count: usize) -> Result<Arc<RankIndex>> {
+    let n: usize = res.iter().product();
+    let bytes = t.u8(name, &[n.div_ceil(64) * 8])?;
+    let ix = RankIndex::new(Bitmap::from_bytes(res, &bytes)?);
+    if ix.count() != count {
+        return Err(Error::bad_file(
+            t.path,
+            format!("'{name}' has {} voxels set, the header says {count}", ix.count()),
+        ));
+    }
+    Ok(Arc::new(ix))
+}
+
 /// Loads a field file, validating everything (see the module docs).
 pub fn load(path: &Path) -> Result<Field> {
     let (h, _) = read_header(path)?;
@@ -599,21 +860,26 @@ pub fn load(path: &Path) -> Result<Field> {
     let bounds = Aabb::new(Vec3::from(h.bounds[0]), Vec3::from(h.bounds[1]));
     let [nx, ny, nz] = h.resolution;
     let geom = GridGeom::new(bounds, h.resolution);
-    let raw = t.f32("density", &[nz, ny, nx])?;
     let occupancy = match h.occupied {
-        Some(count) => {
-            let n = nx * ny * nz;
-            let bytes = t.u8("occupancy", &[n.div_ceil(64) * 8])?;
-            let ix = RankIndex::new(Bitmap::from_bytes(h.resolution, &bytes)?);
-            if ix.count() != count {
-                return Err(Error::bad_file(
-                    path,
-                    format!("occupancy has {} voxels set, the header says {count}", ix.count()),
-                ));
-            }
-            Some(Arc::new(ix))
-        }
+        Some(count) => Some(read_occupancy(&t, "occupancy", h.resolution, count)?),
         None => None,
+    };
+    let raw = match (&h.density, &occupancy) {
+        (Some(d), Some(ix)) if d.layout == LayoutKind::Sparse => {
+            let kept = t.f32("density", &[ix.count()])?;
+            let mut raw = vec![d.fill; nx * ny * nz];
+            for (i, v) in ix.bits().ones().zip(kept) {
+                raw[i] = v;
+            }
+            raw
+        }
+        _ => t.f32("density", &[nz, ny, nx])?,
+    };
+    let feature_index = match (&h.feature_occupied, &h.features) {
+        (Some(count), Some(FeaturesHeader::Grid(c))) => {
+            Some(read_occupancy(&t, "feat.occupancy", c.resolution, *count)?)
+        }
+        _ => occupancy.clone(),
     };
     let appearance = match &h.appearance {
         AppearanceHeader::Rgb(c) => Appearance::Rgb(read_channel_grid(&t, "app.rgb", c, bounds, &occupancy)?),
@@ -647,7 +913,7 @@ pub fn load(path: &Path) -> Result<Field> {
             "feat.grid",
             c,
             bounds,
-            &occupancy,
+            &feature_index,
         )?)),
         Some(FeaturesHeader::Vm(v)) => Some(Features::Vm(read_vm(&t, "feat.vm", v, bounds)?)),
         None => None,

@@ -10,6 +10,7 @@ pub mod grid;
 pub mod io;
 pub mod macro_grid;
 pub mod sh;
+pub mod sparse;
 pub mod vm;
 
 pub use bitmap::{Bitmap, RankIndex};
@@ -54,8 +55,11 @@ pub struct Field {
     pub density: DensityGrid,
     pub appearance: Appearance,
     pub features: Option<Features>,
-    /// Rank index over voxels that sparse grids store; present iff some grid
-    /// uses [`Layout::Sparse`] (they all share it).
+    /// Rank index over the density grid points the field stores ([`sparse`]):
+    /// sparse appearance grids use it, and so do sparse feature grids at the
+    /// density resolution (a sparse feature grid at its own resolution has
+    /// its own index). The file stores the density for these points only
+    /// when every other point holds one value.
     pub occupancy: Option<Arc<RankIndex>>,
     cache: OnceLock<Arc<FeatureCache>>,
     macro_grid: OnceLock<MacroGrid>,

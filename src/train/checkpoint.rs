@@ -5,15 +5,17 @@
 //! `__metadata__`: `format = "isrf-train-checkpoint"`, `version`, `state`
 //! (JSON [`State`]). Tensors (F32 unless noted): `density [n]`, `sh [n, 3K]`,
 //! `active` (U8, packed bits), `features [nf, C]`, `vm.grid` / `vm.net` (VM
-//! appearance), `m.*` / `v.*` moments of each, `history [iters, 7]`.
+//! appearance), `m.*` / `v.*` moments of each (those of density and SH per
+//! active voxel, ascending; older checkpoints hold them per grid point and
+//! still load), `history [iters, 7]`.
 
-use super::model::{DenseGrid, Model};
+use super::model::{DenseGrid, Model, Slots};
 use super::optim::Moments;
 use super::trainer::{OptState, StepStats, TrainConfig};
 use super::vm::{VmAppearance, VmShape};
-use crate::error::{write_atomic, Error, Result};
+use crate::error::{Error, Result};
 use crate::field::geom::check_res;
-use crate::field::io::{check_format, parse, read_all, read_metadata, serialize, Tensors};
+use crate::field::io::{check_format, parse, read_all, read_metadata, write_tensors, Tensors};
 use crate::field::{Aabb, GridGeom};
 use glam::Vec3;
 use safetensors::tensor::Dtype;
@@ -52,10 +54,6 @@ pub struct Restored {
     pub history: Vec<StepStats>,
 }
 
-fn f32_bytes(v: &[f32]) -> Vec<u8> {
-    bytemuck::cast_slice(v).to_vec()
-}
-
 const HIST: usize = 7;
 
 /// Writes a checkpoint atomically.
@@ -80,29 +78,6 @@ pub fn save(
         vm: model.vm.as_ref().map(|v| (v.shape, v.res)),
         data: data.to_string(),
     };
-    let mut names = vec![];
-    let mut tensors = vec![];
-    let mut push = |name: &str, v: &[f32]| {
-        names.push(name.to_string());
-        tensors.push((Dtype::F32, vec![v.len()], f32_bytes(v)));
-    };
-    // Each trained array with its Adam moments `m.<name>` / `v.<name>`.
-    let mut trained = vec![
-        ("density", &model.density[..], &opt.density),
-        ("sh", &model.sh[..], &opt.sh),
-    ];
-    if let Some(f) = &model.features {
-        trained.push(("features", &f.data[..], &opt.features));
-    }
-    if let Some(vm) = &model.vm {
-        trained.push(("vm.grid", &vm.grid[..], &opt.vm_grid));
-        trained.push(("vm.net", &vm.net[..], &opt.vm_net));
-    }
-    for (name, values, mom) in trained {
-        push(name, values);
-        push(&format!("m.{name}"), &mom.m);
-        push(&format!("v.{name}"), &mom.v);
-    }
     let hist: Vec<f32> = history
         .iter()
         .flat_map(|s| {
@@ -117,10 +92,30 @@ pub fn save(
             ]
         })
         .collect();
-    push("history", &hist);
-    let active: Vec<u8> = model.active.iter().flat_map(|w| w.to_le_bytes()).collect();
-    names.push("active".into());
-    tensors.push((Dtype::U8, vec![active.len()], active));
+    // Tensors borrow the trainer's arrays and stream to the file: a copy of
+    // a checkpoint (model and both moments, over 1 GB on a 160³ grid) would
+    // double the peak memory of a training run.
+    let mut out = Outgoing::default();
+    // Each trained array with its Adam moments `m.<name>` / `v.<name>`.
+    let mut trained = vec![
+        ("density", &model.density[..], &opt.density),
+        ("sh", &model.sh[..], &opt.sh),
+    ];
+    if let Some(f) = &model.features {
+        trained.push(("features", &f.data[..], &opt.features));
+    }
+    if let Some(vm) = &model.vm {
+        trained.push(("vm.grid", &vm.grid[..], &opt.vm_grid));
+        trained.push(("vm.net", &vm.net[..], &opt.vm_net));
+    }
+    for (name, values, mom) in trained {
+        out.f32(name, values);
+        out.f32(&format!("m.{name}"), &mom.m);
+        out.f32(&format!("v.{name}"), &mom.v);
+    }
+    out.f32("history", &hist);
+    // Packed little-endian words, like every bitmap in isrf files.
+    out.bytes("active", Dtype::U8, bytemuck::cast_slice(&model.active));
     let mut meta = HashMap::new();
     meta.insert("format".to_string(), FORMAT.to_string());
     meta.insert("version".to_string(), VERSION.to_string());
@@ -128,7 +123,25 @@ pub fn save(
         "state".to_string(),
         serde_json::to_string(&state).map_err(|e| Error::invalid(e.to_string()))?,
     );
-    write_atomic(path, &serialize(&names, &tensors, meta)?)
+    write_tensors(path, &out.names, &out.tensors, meta)
+}
+
+/// Tensors to write, borrowing the arrays (flat shapes).
+#[derive(Default)]
+struct Outgoing<'a> {
+    names: Vec<String>,
+    tensors: Vec<(Dtype, Vec<usize>, &'a [u8])>,
+}
+
+impl<'a> Outgoing<'a> {
+    fn bytes(&mut self, name: &str, dtype: Dtype, bytes: &'a [u8]) {
+        let len = bytes.len() * 8 / dtype.bitsize();
+        self.names.push(name.to_string());
+        self.tensors.push((dtype, vec![len], bytes));
+    }
+    fn f32(&mut self, name: &str, v: &'a [f32]) {
+        self.bytes(name, Dtype::F32, bytemuck::cast_slice(v));
+    }
 }
 
 /// Reads a checkpoint, validating every shape against its state.
@@ -173,8 +186,8 @@ pub fn load(path: &Path) -> Result<Restored> {
         })
     };
     let mut opt = OptState {
-        density: moments("density", n)?,
-        sh: moments("sh", n * k)?,
+        density: Moments::default(),
+        sh: Moments::default(),
         features: Moments::default(),
         vm_grid: Moments::default(),
         vm_net: Moments::default(),
@@ -221,6 +234,24 @@ pub fn load(path: &Path) -> Result<Restored> {
         })
         .collect();
     let mut model = Model::from_parts(geom, state.shift, state.degree, density, sh, active, features)?;
+    // Density and SH moments are per active voxel; checkpoints written
+    // before they were hold them for every grid point.
+    let slot_moments = |name: &str, stride: usize| -> Result<Moments> {
+        let full_len = n * stride;
+        let len = t
+            .st
+            .tensor(&format!("m.{name}"))
+            .map(|v| v.shape().iter().product::<usize>())
+            .unwrap_or(0);
+        if len == full_len && full_len != model.slots.len() * stride {
+            let all = Slots::new(geom.res, &vec![u64::MAX; n.div_ceil(64)]);
+            Ok(moments(name, full_len)?.remap(&all, &model.slots, stride))
+        } else {
+            moments(name, model.slots.len() * stride)
+        }
+    };
+    opt.density = slot_moments("density", 1)?;
+    opt.sh = slot_moments("sh", k)?;
     if let Some((shape, res)) = state.vm {
         shape.validate().map_err(|e| bad(e.to_string()))?;
         check_res(res, "checkpoint VM grid").map_err(|e| bad(e.to_string()))?;

@@ -75,8 +75,10 @@ pub struct RayOut {
     pub samples: u32,
 }
 
-/// Gradient accumulators of one thread; `marks` flag every grid point that
-/// received a gradient since the last optimizer step.
+/// Gradient accumulators of one thread. Density and SH gradients are per
+/// slot of the model's active voxels ([`Model::slots`]; pruned voxels never
+/// train), `marks` flag every slot that received a gradient since the last
+/// optimizer step. Features (a small dense grid) are per grid point.
 #[derive(Clone, Debug)]
 pub struct GradBuf {
     pub density: Vec<f32>,
@@ -91,7 +93,7 @@ pub struct GradBuf {
 
 impl GradBuf {
     pub fn new(model: &Model) -> Self {
-        let n = model.len();
+        let n = model.slots.len();
         let (nf, fc) = model.features.as_ref().map_or((0, 0), |f| (f.geom.len(), f.channels));
         GradBuf {
             density: vec![0.0; n],
@@ -107,8 +109,8 @@ impl GradBuf {
     pub fn fits(&self, model: &Model) -> bool {
         let nf = model.features.as_ref().map_or(0, |f| f.geom.len() * f.channels);
         let (vg, vn) = model.vm.as_ref().map_or((0, 0), |v| (v.grid.len(), v.net.len()));
-        self.density.len() == model.len()
-            && self.sh.len() == model.len() * model.sh_stride()
+        self.density.len() == model.slots.len()
+            && self.sh.len() == model.slots.len() * model.sh_stride()
             && self.feat.len() == nf
             && (self.vm_grid.len(), self.vm_net.len()) == (vg, vn)
     }
@@ -415,7 +417,7 @@ fn backward_k<const K: usize>(
                 }
             }
             for k in 0..8 {
-                let v = base + lat.off[k];
+                let Some(v) = model.slots.slot(base + lat.off[k]) else { continue };
                 let dst = &mut grads.sh[v * stride..(v + 1) * stride];
                 let wk = w8[k];
                 for ch in 0..3 {
@@ -457,7 +459,8 @@ fn backward_k<const K: usize>(
         }
         let draw = dsigma * dt * smp.dsig;
         for k in 0..8 {
-            let v = base + lat.off[k];
+            // Pruned corners never train: they have no slot.
+            let Some(v) = model.slots.slot(base + lat.off[k]) else { continue };
             grads.density[v] += w8[k] * draw;
             set_bit(&mut grads.marks, v);
         }

@@ -17,10 +17,13 @@ use super::vm::VmAppearance;
 use crate::error::Result;
 use crate::field::geom::check_res;
 use crate::field::sh::SH_COEFFS;
-use crate::field::{Aabb, Activation, Appearance, ChannelGrid, DensityGrid, Features, Field, GridGeom};
+use crate::field::{
+    sparse, Aabb, Activation, Appearance, Bitmap, ChannelGrid, DensityGrid, Features, Field, GridGeom, RankIndex,
+};
 use glam::Vec3;
 use half::f16;
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// Raw density of pruned voxels: softplus(−30) ≈ 1e-13, empty for any
 /// renderer threshold.
@@ -54,11 +57,47 @@ pub struct Model {
     pub vm: Option<VmAppearance>,
     /// Trainable voxels (not pruned), one bit per grid point.
     pub active: Vec<u64>,
+    /// Compact numbering of the active voxels: gradients and Adam moments
+    /// of density and SH are stored per slot, not per grid point (after
+    /// pruning a few per cent of the grid trains).
+    pub slots: Slots,
     /// Per cell, indexed by its lowest corner: 1 when any corner is active.
     pub cells: Vec<u8>,
     /// Per block of `BLOCK³` cells: true when any cell in it is active.
     pub blocks: Vec<bool>,
     pub block_dims: [usize; 3],
+}
+
+/// Slot `s` of the active voxels ↔ voxel `voxels[s]`, ascending; the rank
+/// index gives a voxel's slot in O(1).
+#[derive(Clone, Debug)]
+pub struct Slots {
+    pub index: RankIndex,
+    pub voxels: Vec<u32>,
+}
+
+impl Slots {
+    /// Slots of the set bits of `active` over grid `res` (grids are checked
+    /// by [`check_res`], far below 2³² points).
+    pub fn new(res: [usize; 3], active: &[u64]) -> Slots {
+        let bits = Bitmap::from_fn(res, |i| bit(active, i));
+        let voxels = bits.ones().map(|v| v as u32).collect();
+        Slots {
+            index: RankIndex::new(bits),
+            voxels,
+        }
+    }
+    /// Number of slots (active voxels).
+    pub fn len(&self) -> usize {
+        self.voxels.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.voxels.is_empty()
+    }
+    #[inline]
+    pub fn slot(&self, voxel: usize) -> Option<usize> {
+        self.index.slot(voxel)
+    }
 }
 
 /// Bit helpers over `u64` words.
@@ -91,6 +130,7 @@ impl Model {
             features: None,
             vm: None,
             active: vec![u64::MAX; n.div_ceil(64)],
+            slots: Slots::new([0; 3], &[]),
             cells: vec![],
             blocks: vec![],
             block_dims: [1; 3],
@@ -133,6 +173,7 @@ impl Model {
             features,
             vm: None,
             active,
+            slots: Slots::new([0; 3], &[]),
             cells: vec![],
             blocks: vec![],
             block_dims: [1; 3],
@@ -208,6 +249,7 @@ impl Model {
         self.cells = cells;
         self.blocks = blocks;
         self.block_dims = bd;
+        self.slots = Slots::new(g.res, &self.active);
     }
 
     /// Prunes voxels: keeps those with σ·`step` ≥ `alpha_floor`·… (per-sample
@@ -351,20 +393,58 @@ impl Model {
         )
     }
 
-    /// The SH coefficients padded to degree 2, in f16.
-    fn sh_appearance(&self) -> Appearance {
-        let k = sh_coeffs(self.degree);
-        let n = self.len();
-        let mut sh = vec![f16::ZERO; n * 3 * SH_COEFFS];
-        sh.par_chunks_mut(3 * SH_COEFFS)
-            .zip(self.sh.par_chunks(3 * k))
-            .for_each(|(d, s)| {
-                for c in 0..3 {
-                    for j in 0..k {
-                        d[c * SH_COEFFS + j] = f16::from_f32(s[c * k + j]);
-                    }
+    /// The field `isrf train` writes: [`Model::to_field`] with appearance
+    /// and features stored for the occupied points only and the density
+    /// emptied elsewhere ([`crate::field::sparse`]: renders and segments
+    /// the same), built without a dense f16 copy of the grids.
+    pub fn to_sparse_field(&self) -> Field {
+        let dense = DensityGrid {
+            geom: self.geom,
+            raw: self.density.clone(),
+            activation: self.activation(),
+        };
+        let bits = sparse::density_occupancy(&dense);
+        let density = sparse::emptied_density(&dense, &bits);
+        drop(dense);
+        let index = Arc::new(RankIndex::new(bits));
+        let appearance = match &self.vm {
+            Some(vm) => vm.to_field(self.geom),
+            None => {
+                let data = sparse::gather(&index, 3 * SH_COEFFS, |v, row| self.sh_row(v, row));
+                Appearance::Sh2(ChannelGrid::sparse(self.geom, 3 * SH_COEFFS, index.clone(), data))
+            }
+        };
+        let features = self.features.as_ref().map(|f| {
+            let fi = Arc::new(RankIndex::new(sparse::feature_occupancy(index.bits(), &self.geom, &f.geom)));
+            let c = f.channels;
+            let data = sparse::gather(&fi, c, |v, row| {
+                for (o, &x) in row.iter_mut().zip(&f.data[v * c..(v + 1) * c]) {
+                    *o = f16::from_f32(x);
                 }
             });
+            Features::Grid(ChannelGrid::sparse(f.geom, c, fi, data))
+        });
+        Field::new(density, appearance, features, Some(index))
+    }
+
+    /// SH coefficients of voxel `v` padded to degree 2, in f16.
+    fn sh_row(&self, v: usize, row: &mut [f16]) {
+        let k = sh_coeffs(self.degree);
+        let src = &self.sh[v * 3 * k..(v + 1) * 3 * k];
+        row.fill(f16::ZERO);
+        for c in 0..3 {
+            for j in 0..k {
+                row[c * SH_COEFFS + j] = f16::from_f32(src[c * k + j]);
+            }
+        }
+    }
+
+    /// The SH coefficients padded to degree 2, in f16.
+    fn sh_appearance(&self) -> Appearance {
+        let mut sh = vec![f16::ZERO; self.len() * 3 * SH_COEFFS];
+        sh.par_chunks_mut(3 * SH_COEFFS)
+            .enumerate()
+            .for_each(|(v, row)| self.sh_row(v, row));
         Appearance::Sh2(ChannelGrid::dense(self.geom, 3 * SH_COEFFS, sh))
     }
 

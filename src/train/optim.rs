@@ -1,12 +1,15 @@
 //! Sparse Adam over flat parameter arrays, total-variation gradients, and
 //! merging the per-thread gradient buffers.
 //!
-//! Every thread owns a full-size gradient buffer and a bitmap of the grid
-//! points it touched; after a batch the bitmaps are OR-ed and the optimizer
-//! walks only the touched points, in parallel chunks of whole bitmap words,
-//! summing the threads' gradients, zeroing them and updating parameters and
-//! moments. Untouched voxels cost one zero-word test per 64.
+//! Every thread owns a gradient buffer over the trainable points (the slots
+//! of the active voxels, [`Slots`]) and a bitmap of the slots it touched;
+//! after a batch the bitmaps are OR-ed and the optimizer walks only the
+//! touched slots, in parallel chunks of whole bitmap words, summing the
+//! threads' gradients, zeroing them and updating parameters and moments.
+//! Moments are per slot too, so memory follows the active voxels, not the
+//! grid. Untouched slots cost one zero-word test per 64.
 
+use super::model::Slots;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -45,6 +48,23 @@ impl Moments {
             v: vec![0.0; len],
         }
     }
+    /// The moments of `old`'s slots renumbered for `new` (whose voxels are a
+    /// subset of `old`'s, e.g. after pruning), `stride` values per slot;
+    /// voxels `old` lacks start from zero.
+    pub fn remap(&self, old: &Slots, new: &Slots, stride: usize) -> Moments {
+        let mut out = Moments::new(new.len() * stride);
+        out.m
+            .par_chunks_mut(stride)
+            .zip(out.v.par_chunks_mut(stride))
+            .zip(new.voxels.par_iter())
+            .for_each(|((m, v), &voxel)| {
+                if let Some(o) = old.slot(voxel as usize) {
+                    m.copy_from_slice(&self.m[o * stride..(o + 1) * stride]);
+                    v.copy_from_slice(&self.v[o * stride..(o + 1) * stride]);
+                }
+            });
+        out
+    }
 }
 
 /// OR of the threads' touched bitmaps; clears them.
@@ -60,9 +80,11 @@ pub fn merge_marks(marks: &mut [&mut Vec<u64>]) -> Vec<u64> {
     out
 }
 
-/// One Adam step on the grid points set in `touched` (and in `active` when
-/// given). `grads` are the threads' full-size gradient arrays; they are
-/// summed and zeroed at every touched point. `lr_t` already includes the
+/// One Adam step on the points set in `touched`. Moments, gradients and
+/// `touched` are per slot; with `slots`, slot `s` updates grid point
+/// `slots.voxels[s]` of `params` (the active voxels of a grid), without,
+/// slot `s` is point `s`. `grads` are the threads' gradient arrays; they are
+/// summed and zeroed at every touched slot. `lr_t` already includes the
 /// bias correction. Values are clamped to `clamp` afterwards.
 #[allow(clippy::too_many_arguments)]
 pub fn adam_step(
@@ -71,30 +93,33 @@ pub fn adam_step(
     grads: &mut [&mut Vec<f32>],
     stride: usize,
     touched: &[u64],
-    active: Option<&[u64]>,
+    slots: Option<&Slots>,
     lr_t: f32,
     hp: AdamParams,
     clamp: (f32, f32),
 ) {
-    if params.is_empty() {
+    if mom.m.is_empty() {
         return;
     }
     let span = CHUNK * stride;
-    let nchunks = params.len().div_ceil(span);
+    let pieces = param_pieces(params, slots, stride);
+    let nchunks = mom.m.len().div_ceil(span);
+    assert_eq!(pieces.len(), nchunks, "parameters and moments do not match");
     let mut per_chunk: Vec<Vec<&mut [f32]>> = (0..nchunks).map(|_| Vec::with_capacity(grads.len())).collect();
     for g in grads.iter_mut() {
+        assert_eq!(g.len(), mom.m.len(), "gradients and moments do not match");
         for (c, sl) in g.chunks_mut(span).enumerate() {
             per_chunk[c].push(sl);
         }
     }
     let AdamParams { beta1, beta2, eps } = hp;
-    params
+    mom.m
         .par_chunks_mut(span)
-        .zip(mom.m.par_chunks_mut(span))
         .zip(mom.v.par_chunks_mut(span))
         .zip(per_chunk.into_par_iter())
+        .zip(pieces.into_par_iter())
         .enumerate()
-        .for_each(|(c, (((p, m), v), mut gs))| {
+        .for_each(|(c, (((m, v), mut gs), (offset, p)))| {
             let w0 = c * CHUNK / 64;
             let words = &touched[w0..(w0 + CHUNK / 64).min(touched.len())];
             let mut sum = vec![0.0f32; stride];
@@ -112,21 +137,41 @@ pub fn adam_step(
                             *x = 0.0;
                         }
                     }
-                    if let Some(a) = active {
-                        let gi = c * CHUNK + local;
-                        if a[gi >> 6] >> (gi & 63) & 1 == 0 {
-                            continue;
-                        }
-                    }
+                    let point = slots.map_or(c * CHUNK + local, |sl| sl.voxels[c * CHUNK + local] as usize);
+                    let p0 = point * stride - offset;
                     for (j, &gj) in sum.iter().enumerate() {
                         let k = r.start + j;
                         m[k] = beta1 * m[k] + (1.0 - beta1) * gj;
                         v[k] = beta2 * v[k] + (1.0 - beta2) * gj * gj;
-                        p[k] = (p[k] - lr_t * m[k] / (v[k].sqrt() + eps)).clamp(clamp.0, clamp.1);
+                        let q = &mut p[p0 + j];
+                        *q = (*q - lr_t * m[k] / (v[k].sqrt() + eps)).clamp(clamp.0, clamp.1);
                     }
                 }
             }
         });
+}
+
+/// `params` cut into one piece per chunk of `CHUNK` slots, each with the
+/// offset of its first value: slots are ascending voxels, so a chunk's
+/// voxels lie in one contiguous, disjoint range of the grid.
+fn param_pieces<'a>(params: &'a mut [f32], slots: Option<&Slots>, stride: usize) -> Vec<(usize, &'a mut [f32])> {
+    let span = CHUNK * stride;
+    let Some(sl) = slots else {
+        return params.chunks_mut(span).enumerate().map(|(c, p)| (c * span, p)).collect();
+    };
+    let mut out = Vec::with_capacity(sl.len().div_ceil(CHUNK));
+    let mut rest = params;
+    let mut consumed = 0;
+    for chunk in sl.voxels.chunks(CHUNK) {
+        let start = chunk[0] as usize * stride;
+        let end = (chunk[chunk.len() - 1] as usize + 1) * stride;
+        let (_, tail) = std::mem::take(&mut rest).split_at_mut(start - consumed);
+        let (piece, tail) = tail.split_at_mut(end - start);
+        out.push((start, piece));
+        rest = tail;
+        consumed = end;
+    }
+    out
 }
 
 /// [`adam_step`] on every value (stride 1): small dense parameter sets such
@@ -156,9 +201,19 @@ pub fn corrected_lr(lr: f32, t: u64, hp: AdamParams) -> f32 {
 }
 
 /// Adds the gradient of `weight · Σ (xᵥ − xₙ)²` over axis neighbours (the
-/// squared total variation) at the touched grid points to `grad`; `stride`
-/// values per point, each channel on its own.
-pub fn add_tv(params: &[f32], grad: &mut [f32], stride: usize, res: [usize; 3], touched: &[u64], weight: f32) {
+/// squared total variation) at the touched slots to `grad` (per slot, as in
+/// [`adam_step`]; `params` per grid point); `stride` values per point, each
+/// channel on its own.
+#[allow(clippy::too_many_arguments)]
+pub fn add_tv(
+    params: &[f32],
+    grad: &mut [f32],
+    stride: usize,
+    res: [usize; 3],
+    touched: &[u64],
+    slots: Option<&Slots>,
+    weight: f32,
+) {
     if weight == 0.0 {
         return;
     }
@@ -173,7 +228,7 @@ pub fn add_tv(params: &[f32], grad: &mut [f32], stride: usize, res: [usize; 3], 
                 let b = bits.trailing_zeros() as usize;
                 bits &= bits - 1;
                 let local = wi * 64 + b;
-                let i = c * CHUNK + local;
+                let i = slots.map_or(c * CHUNK + local, |sl| sl.voxels[c * CHUNK + local] as usize);
                 let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
                 let nb = [
                     (x > 0).then(|| i - 1),

@@ -301,16 +301,20 @@ impl Trainer {
     /// the current model; recomputes which rays meet the box.
     fn reset_buffers(&mut self, keep_moments: bool) {
         let nt = rayon::current_num_threads().max(1);
+        // Free the old buffers before allocating new ones (peak memory).
+        self.grads = vec![];
         self.grads = (0..nt).map(|_| GradBuf::new(&self.model)).collect();
         let (vg, vn) = self.model.vm.as_ref().map_or((0, 0), |v| (v.grid.len(), v.net.len()));
-        let fits = self.opt.density.m.len() == self.model.len()
-            && self.opt.sh.m.len() == self.model.sh.len()
+        let slots = self.model.slots.len();
+        let fits = self.opt.density.m.len() == slots
+            && self.opt.sh.m.len() == slots * self.model.sh_stride()
             && self.opt.features.m.len() == self.model.features.as_ref().map_or(0, |f| f.data.len())
             && (self.opt.vm_grid.m.len(), self.opt.vm_net.m.len()) == (vg, vn);
         if !keep_moments || !fits {
+            self.opt = OptState::default();
             self.opt = OptState {
-                density: Moments::new(self.model.len()),
-                sh: Moments::new(self.model.sh.len()),
+                density: Moments::new(slots),
+                sh: Moments::new(slots * self.model.sh_stride()),
                 features: Moments::new(self.model.features.as_ref().map_or(0, |f| f.data.len())),
                 vm_grid: Moments::new(vg),
                 vm_net: Moments::new(vn),
@@ -390,9 +394,7 @@ impl Trainer {
         if pe > 0 && self.iter > 0 && self.iter.is_multiple_of(pe) && self.iter < self.config.iters {
             let first = sched.get(1).map_or(usize::MAX, |s| s.0);
             if self.iter > first {
-                let kept = self
-                    .model
-                    .prune(self.step_size(), self.config.prune_alpha, self.config.prune_dilate);
+                let kept = self.prune_within_stage();
                 self.notes.push(format!(
                     "iteration {}: pruned to {kept} of {} voxels",
                     self.iter,
@@ -412,6 +414,21 @@ impl Trainer {
             self.opt.features = Moments::new(self.model.features.as_ref().map_or(0, |f| f.data.len()));
         }
         Ok(())
+    }
+
+    /// Prunes between stage changes: Adam keeps the moments of the voxels
+    /// that stay (renumbered to the new slots); gradient buffers shrink.
+    fn prune_within_stage(&mut self) -> usize {
+        let old = self.model.slots.clone();
+        let kept = self
+            .model
+            .prune(self.step_size(), self.config.prune_alpha, self.config.prune_dilate);
+        let new = &self.model.slots;
+        let stride = self.model.sh_stride();
+        self.opt.density = self.opt.density.remap(&old, new, 1);
+        self.opt.sh = self.opt.sh.remap(&old, new, stride);
+        self.reset_buffers(true);
+        kept
     }
 
     /// Learning-rate multiplier at the current iteration (exponential decay
@@ -529,6 +546,7 @@ impl Trainer {
                 1,
                 res,
                 &touched,
+                Some(&self.model.slots),
                 cfg.tv_density * voxel * voxel,
             );
             add_tv(
@@ -537,6 +555,7 @@ impl Trainer {
                 self.model.sh_stride(),
                 res,
                 &touched,
+                Some(&self.model.slots),
                 cfg.tv_sh,
             );
         }
@@ -551,7 +570,6 @@ impl Trainer {
         } else {
             corrected_lr(cfg.lr_sh * decay, t, hp)
         };
-        let active = self.model.active.clone();
         {
             let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.density).collect();
             adam_step(
@@ -560,7 +578,7 @@ impl Trainer {
                 &mut gs,
                 1,
                 &touched,
-                Some(&active),
+                Some(&self.model.slots),
                 lr_d,
                 hp,
                 (PRUNED_RAW, 1e6),
@@ -575,7 +593,7 @@ impl Trainer {
                 &mut gs,
                 stride,
                 &touched,
-                Some(&active),
+                Some(&self.model.slots),
                 lr_s,
                 hp,
                 (-1e3, 1e3),
@@ -600,6 +618,7 @@ impl Trainer {
                 f.channels,
                 f.geom.res,
                 &ftouched,
+                None,
                 cfg.tv_features,
             );
             let lr_f = corrected_lr(cfg.lr_features * fdecay, t, hp);
