@@ -7,14 +7,18 @@
 // ray from the camera; at each sample the layers' (masked, activated)
 // densities add and colours mix by density (D²NeRF), alpha = 1 - exp(-σ δ),
 // T_i = Π (1 - alpha_j), C = Σ T_i alpha_i c_i + T_N · background. Grids are
-// corner-aligned (src/field/geom.rs). Raw density (as f16 texels) and RGB
-// colours (10-bit unorm, within 5e-4 of their f16 values) are
-// interpolated by the texture unit's trilinear filter (f32 weights on
-// lavapipe; real GPUs quantise the weights, typically to 8 bits); SH
-// coefficients (their f16 values) and the per-corner densities that masks
-// need are read from storage buffers and interpolated here in f32. Sparse
+// corner-aligned (src/field/geom.rs). Only occupied bricks of the grids
+// are stored, in pool textures shared by all fields (src/app/gpu/pool.rs):
+// a field's indirection grid gives the pool slot of the brick a cell lies
+// in, and every cell's 8 corners lie in its brick, so the texture unit's
+// trilinear filter interpolates raw density (f16 texels), RGB colours
+// (10-bit unorm, within 5e-4 of their f16 values) and SH coefficients
+// (their f16 values) exactly as the CPU does (f32 weights on lavapipe;
+// real GPUs quantise the weights, typically to 8 bits). Cells of empty
+// bricks have σ ≤ 1e-4 at every corner and are read as empty. Sparse
 // colours renormalise over the stored corners, as `ChannelGrid::sample`
-// does. Masks weight the bitmap by density, as `render::bitmap_fraction`.
+// does. Masks weight the bitmap by density, as `render::bitmap_fraction`,
+// with the corners' densities read one by one.
 //
 // Empty space: each field has a grid of skip cells (2 voxels wide) holding
 // the Chebyshev distance to the nearest cell whose grid points have
@@ -35,8 +39,10 @@ struct View {
     march: vec4<f32>,
     // layer count
     counts: vec4<u32>,
-    // 1 / the atlas textures' size (xyz)
+    // 1 / the pool textures' size (xyz)
     atlas: vec4<f32>,
+    // the pool's bricks per axis (xyz)
+    pool: vec4<u32>,
 };
 
 struct Layer {
@@ -56,9 +62,10 @@ struct FieldInfo {
     bounds_min: vec4<f32>,
     // xyz bounds; w: activation kind (0 relu, 1 softplus)
     bounds_max: vec4<f32>,
-    // nx, ny, nz, colour kind (COLOR_SPARSE | COLOR_SH bits)
+    // points per axis at the level of detail shown, colour kind
+    // (COLOR_SPARSE | COLOR_SH bits)
     res: vec4<u32>,
-    // density, colours (SH slot table), SH coefficients, first atlas slice
+    // indirection grid (word in aux), first pool slot, 0, 0
     offsets: vec4<u32>,
     // skip dims xyz, skip offset
     skip: vec4<u32>,
@@ -70,16 +77,22 @@ struct FieldInfo {
 @group(0) @binding(2) var<storage, read> fields: array<FieldInfo>;
 @group(0) @binding(3) var<storage, read> aux: array<u32>;
 @group(0) @binding(4) var<storage, read> bitmaps: array<u32>;
-@group(0) @binding(5) var<storage, read> density: array<f32>;
-@group(0) @binding(6) var<storage, read> colors: array<u32>;
-// The atlas (pack.rs `Atlas`): raw density and RGB colours of every
-// field, sampled with the GPU's trilinear filter: one texture sample
-// instead of 8 loads, which made frames 1.8× faster on lavapipe (its
-// texture unit gathers all lanes at once, where a storage load is a loop
-// over the lanes).
-@group(0) @binding(7) var density_tex: texture_3d<f32>;
-@group(0) @binding(8) var rgb_tex: texture_3d<f32>;
-@group(0) @binding(9) var atlas_sampler: sampler;
+// The pool (pool.rs, pack.rs `PoolTextures`): raw density, RGB colours
+// and SH coefficients (27 + a stored flag in 7 RGBA textures) of every
+// field's occupied bricks, sampled with the GPU's trilinear filter: one
+// texture sample instead of 8 loads per quantity, which made frames 1.8×
+// faster on lavapipe (its texture unit gathers all lanes at once, where a
+// storage load is a loop over the lanes).
+@group(0) @binding(5) var density_tex: texture_3d<f32>;
+@group(0) @binding(6) var rgb_tex: texture_3d<f32>;
+@group(0) @binding(7) var sh0: texture_3d<f32>;
+@group(0) @binding(8) var sh1: texture_3d<f32>;
+@group(0) @binding(9) var sh2: texture_3d<f32>;
+@group(0) @binding(10) var sh3: texture_3d<f32>;
+@group(0) @binding(11) var sh4: texture_3d<f32>;
+@group(0) @binding(12) var sh5: texture_3d<f32>;
+@group(0) @binding(13) var sh6: texture_3d<f32>;
+@group(0) @binding(14) var atlas_sampler: sampler;
 
 // The pipeline is specialised on a bound of the layer count (1, 2, 4 or
 // src/app/gpu/pack.rs MAX_LAYERS): the per-layer loops run a constant
@@ -102,16 +115,20 @@ const MASK_REMOVE: u32 = 2u;
 const LAYER_COLOR_EDIT: u32 = 1u;
 const LAYER_HIGHLIGHT: u32 = 2u;
 const LAYER_DIM: u32 = 4u;
+// pool.rs BRICK_CELLS, BRICK, BRICK_WORDS.
+const BRICK_CELLS: u32 = 7u;
+const BRICK: u32 = 8u;
+const BRICK_WORDS: u32 = 16u;
 
-// Trilinear cell of a local point: where its base corner is in the
-// bricked grid arrays (density, SH colours) and its +x, +y, +z neighbours'
-// offsets from there, its linear index (mask bitmaps), fractions, the
-// point's atlas texture coordinates; `inside` false outside the grid
-// (geom.rs `corners`).
+// Trilinear cell of a local point: the pool texel of its base corner,
+// the field-local slot of its brick (mask words) and the corner's texel
+// index in the brick (mask bits), fractions, the point's pool texture
+// coordinates; `inside` false outside the grid (geom.rs `corners`) or in
+// an empty brick.
 struct Cell {
-    base: u32,
-    step: vec3<u32>,
-    lin: u32,
+    texel: vec3<u32>,
+    slot: u32,
+    local: u32,
     frac: vec3<f32>,
     uvw: vec3<f32>,
     inside: bool,
@@ -142,33 +159,31 @@ fn cell_of(f: FieldInfo, p: vec3<f32>) -> Cell {
     let n = vec3<f32>(f.res.xyz) - vec3<f32>(1.0);
     let g = (p - f.bounds_min.xyz) / (f.bounds_max.xyz - f.bounds_min.xyz) * n;
     out.inside = all(g >= vec3<f32>(0.0)) && all(g <= n);
+    if !out.inside {
+        return out;
+    }
     // Base corner clamped so that points on the upper face use the last cell.
-    let b = min(vec3<u32>(max(g, vec3<f32>(0.0))), f.res.xyz - vec3<u32>(2u));
-    out.lin = b.x + f.res.x * (b.y + f.res.y * b.z);
-    // Bricked index (pack.rs `bricked_index`): 4³ bricks of 64 points, x
-    // fastest within and between bricks; a neighbour across a brick face
-    // is in the next brick along that axis.
-    let bricks = (f.res.xyz + vec3<u32>(3u)) >> vec3<u32>(2u);
-    let w = b & vec3<u32>(3u);
-    let bb = b >> vec3<u32>(2u);
-    out.base = ((bb.z * bricks.y + bb.y) * bricks.x + bb.x) * 64u + (w.z * 4u + w.y) * 4u + w.x;
-    let across = vec3<u32>(61u, 64u * bricks.x - 12u, 64u * bricks.x * bricks.y - 48u);
-    out.step = select(vec3<u32>(1u, 4u, 16u), across, w == vec3<u32>(3u));
+    let b = min(vec3<u32>(g), f.res.xyz - vec3<u32>(2u));
     out.frac = g - vec3<f32>(b);
+    // The brick (pool.rs `brick_dims`, `FieldBricks::indirection`).
+    let bricks = (f.res.xyz + vec3<u32>(BRICK_CELLS - 2u)) / BRICK_CELLS;
+    let bc = b / BRICK_CELLS;
+    let l = b - bc * BRICK_CELLS;
+    let entry = aux[f.offsets.x + bc.x + bricks.x * (bc.y + bricks.y * bc.z)];
+    if entry == 0u {
+        out.inside = false;
+        return out;
+    }
+    out.slot = entry - 1u;
+    // Pool slot -> brick position (pool.rs `PoolLayout`).
+    let s = f.offsets.y + out.slot;
+    let pool = view.pool.xyz;
+    let pb = vec3<u32>(s % pool.x, (s / pool.x) % pool.y, s / (pool.x * pool.y));
+    out.texel = pb * BRICK + l;
+    out.local = l.x + BRICK * (l.y + BRICK * l.z);
     // Texel centres sit at half-integer coordinates.
-    out.uvw = (g + vec3<f32>(0.5, 0.5, 0.5 + f32(f.offsets.w))) * view.atlas.xyz;
+    out.uvw = (vec3<f32>(out.texel) + out.frac + vec3<f32>(0.5)) * view.atlas.xyz;
     return out;
-}
-
-// Bricked offsets of the 8 corners from the base corner, in the CPU's order.
-fn corner(c: Cell, k: u32) -> u32 {
-    return (k & 1u) * c.step.x + ((k >> 1u) & 1u) * c.step.y + ((k >> 2u) & 1u) * c.step.z;
-}
-
-fn corner_weight(frac: vec3<f32>, k: u32) -> f32 {
-    let d = vec3<f32>(f32(k & 1u), f32((k >> 1u) & 1u), f32((k >> 2u) & 1u));
-    let w = mix(vec3<f32>(1.0) - frac, frac, d);
-    return w.x * w.y * w.z;
 }
 
 fn activate(f: FieldInfo, raw: f32) -> f32 {
@@ -225,45 +240,27 @@ fn sh_basis(d: vec3<f32>) -> array<f32, 9> {
     );
 }
 
-// Word of grid point v's 27 f16 SH coefficients (14 words, r0..r8 g0..g8
-// b0..b8), or -1 where the sparse appearance stores none.
-fn sh_base(f: FieldInfo, v: u32) -> i32 {
-    var slot = i32(v);
-    if (f.res.w & COLOR_SPARSE) != 0u {
-        slot = i32(colors[f.offsets.y + v]) - 1;
-        if slot < 0 {
-            return -1;
-        }
-    }
-    return i32(f.offsets.z) + slot * 14;
-}
-
-fn half_at(base: u32, i: u32) -> f32 {
-    let p = unpack2x16float(colors[base + (i >> 1u)]);
-    return select(p.x, p.y, (i & 1u) == 1u);
-}
-
-// SH colour: the coefficients interpolated (renormalised over stored
-// corners when sparse), dotted with the basis, then a sigmoid. The dot is
-// linear, so it is taken per corner before the weighted sum.
+// SH colour: the coefficients interpolated by the filter (channel 27 is
+// the sum of the stored corners' weights, pack.rs `sh_texel`; sparse
+// appearances renormalise by it), dotted with the basis, then a sigmoid.
 fn sh_at(f: FieldInfo, c: Cell, dir: vec3<f32>) -> vec3<f32> {
-    var b = sh_basis(dir);
-    var acc = vec3<f32>(0.0);
-    var wsum = 0.0;
-    for (var k = 0u; k < 8u; k++) {
-        let w = corner_weight(c.frac, k);
-        let base = sh_base(f, c.base + corner(c, k));
-        if w == 0.0 || base < 0 {
-            continue;
-        }
-        var v = vec3<f32>(0.0);
-        for (var j = 0u; j < 9u; j++) {
-            let u = u32(base);
-            v += b[j] * vec3<f32>(half_at(u, j), half_at(u, 9u + j), half_at(u, 18u + j));
-        }
-        acc += w * v;
-        wsum += w;
-    }
+    let b = sh_basis(dir);
+    let t0 = textureSampleLevel(sh0, atlas_sampler, c.uvw, 0.0);
+    let t1 = textureSampleLevel(sh1, atlas_sampler, c.uvw, 0.0);
+    let t2 = textureSampleLevel(sh2, atlas_sampler, c.uvw, 0.0);
+    let t3 = textureSampleLevel(sh3, atlas_sampler, c.uvw, 0.0);
+    let t4 = textureSampleLevel(sh4, atlas_sampler, c.uvw, 0.0);
+    let t5 = textureSampleLevel(sh5, atlas_sampler, c.uvw, 0.0);
+    let t6 = textureSampleLevel(sh6, atlas_sampler, c.uvw, 0.0);
+    // Channels 0..8 red, 9..17 green, 18..26 blue.
+    let r = b[0] * t0.x + b[1] * t0.y + b[2] * t0.z + b[3] * t0.w + b[4] * t1.x + b[5] * t1.y + b[6] * t1.z
+        + b[7] * t1.w + b[8] * t2.x;
+    let g = b[0] * t2.y + b[1] * t2.z + b[2] * t2.w + b[3] * t3.x + b[4] * t3.y + b[5] * t3.z + b[6] * t3.w
+        + b[7] * t4.x + b[8] * t4.y;
+    let bl = b[0] * t4.z + b[1] * t4.w + b[2] * t5.x + b[3] * t5.y + b[4] * t5.z + b[5] * t5.w + b[6] * t6.x
+        + b[7] * t6.y + b[8] * t6.z;
+    let wsum = t6.w;
+    var acc = vec3<f32>(r, g, bl);
     if wsum <= 1e-6 {
         acc = vec3<f32>(0.0);
     } else if (f.res.w & COLOR_SPARSE) != 0u {
@@ -291,35 +288,38 @@ fn bit(offset: u32, idx: u32) -> f32 {
 }
 
 // One corner of `mask_factor`: (w·σ·m, w·σ, w·m).
-// `lin`: the corner's linear index (bitmap bit), `d`: its density word.
-fn mask_tap(f: FieldInfo, words: u32, lin: u32, d: u32, w: f32) -> vec3<f32> {
-    let m = bit(words, lin);
-    let ws = w * activate(f, density[d]);
+// `words`: the brick's mask words, `t`: the corner's texel index in the
+// brick (its bit), `texel`: its pool texel (its density).
+fn mask_tap(f: FieldInfo, words: u32, t: u32, texel: vec3<u32>, w: f32) -> vec3<f32> {
+    let m = bit(words, t);
+    let ws = w * activate(f, textureLoad(density_tex, vec3<i32>(texel), 0).x);
     return vec3<f32>(ws * m, ws, w * m);
 }
 
 // The share b(p) of the density that comes from the corners set in the
-// bitmap at word offset `words`: b = Σ w σ m / Σ w σ over the 8 corners with
-// σ activated (render::bitmap_fraction), so that a removal leaves no
-// half-density shell around the object. Without density at any corner, b
-// falls back to the plain interpolation of the bits.
+// mask at word offset `words` (in brick order, pool.rs `brick_bits`):
+// b = Σ w σ m / Σ w σ over the 8 corners with σ activated
+// (render::bitmap_fraction), so that a removal leaves no half-density
+// shell around the object. Without density at any corner, b falls back to
+// the plain interpolation of the bits.
 fn bitmap_fraction(words: u32, f: FieldInfo, c: Cell) -> f32 {
-    let sy = f.res.x;
-    let sz = f.res.x * f.res.y;
     let a = c.frac;
     let g = vec3<f32>(1.0) - a;
-    let l = c.lin;
-    let o = f.offsets.x + c.base;
-    let t = c.step;
-    let z = words;
-    // Corners written out as in `rgb_at` (lavapipe is much faster so).
-    let s = mask_tap(f, z, l, o, g.x * g.y * g.z) + mask_tap(f, z, l + 1u, o + t.x, a.x * g.y * g.z)
-        + mask_tap(f, z, l + sy, o + t.y, g.x * a.y * g.z)
-        + mask_tap(f, z, l + sy + 1u, o + t.y + t.x, a.x * a.y * g.z)
-        + mask_tap(f, z, l + sz, o + t.z, g.x * g.y * a.z)
-        + mask_tap(f, z, l + sz + 1u, o + t.z + t.x, a.x * g.y * a.z)
-        + mask_tap(f, z, l + sz + sy, o + t.z + t.y, g.x * a.y * a.z)
-        + mask_tap(f, z, l + sz + sy + 1u, o + t.z + t.y + t.x, a.x * a.y * a.z);
+    let o = words + c.slot * BRICK_WORDS;
+    let l = c.local;
+    let t = c.texel;
+    let x = vec3<u32>(1u, 0u, 0u);
+    let y = vec3<u32>(0u, 1u, 0u);
+    let z = vec3<u32>(0u, 0u, 1u);
+    // Corners written out (lavapipe is much faster so); +1 texel is +1,
+    // +BRICK or +BRICK² in the brick's bit order.
+    let s = mask_tap(f, o, l, t, g.x * g.y * g.z) + mask_tap(f, o, l + 1u, t + x, a.x * g.y * g.z)
+        + mask_tap(f, o, l + 8u, t + y, g.x * a.y * g.z)
+        + mask_tap(f, o, l + 9u, t + x + y, a.x * a.y * g.z)
+        + mask_tap(f, o, l + 64u, t + z, g.x * g.y * a.z)
+        + mask_tap(f, o, l + 65u, t + z + x, a.x * g.y * a.z)
+        + mask_tap(f, o, l + 72u, t + z + y, g.x * a.y * a.z)
+        + mask_tap(f, o, l + 73u, t + z + y + x, a.x * a.y * a.z);
     if s.y > 0.0 {
         return s.x / s.y;
     }

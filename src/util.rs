@@ -73,3 +73,15 @@ impl Progress {
         self.0.lock().ok().and_then(|s| s.clone())
     }
 }
+
+/// A byte count for people: "812 KB", "3.4 MB", "2.0 GB" (powers of 1024).
+pub fn human_bytes(n: usize) -> String {
+    let n = n as f64;
+    if n < 1024.0 * 1024.0 {
+        format!("{:.0} KB", n / 1024.0)
+    } else if n < 1024.0 * 1024.0 * 1024.0 {
+        format!("{:.1} MB", n / (1024.0 * 1024.0))
+    } else {
+        format!("{:.1} GB", n / (1024.0 * 1024.0 * 1024.0))
+    }
+}

@@ -176,6 +176,17 @@ impl HeadlessRenderer {
         self.app.world().resource::<SharedStatus>().clone()
     }
 
+    /// What the render world did last (level of detail, pool size, errors).
+    pub fn render_status(&self) -> super::gpu::RenderStatus {
+        self.status().get()
+    }
+
+    /// Bytes of GPU memory the view's pool textures may take (beyond it the
+    /// view shows a coarser level of detail).
+    pub fn set_memory_budget(&mut self, bytes: usize) {
+        self.app.world_mut().resource_mut::<MarchScene>().memory_budget = bytes;
+    }
+
     /// One frame, waiting for the GPU to finish it.
     pub fn step(&mut self) {
         self.app.update();

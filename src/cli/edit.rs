@@ -77,6 +77,10 @@ pub struct BenchArgs {
     /// Frames timed per measurement
     #[arg(long, default_value_t = 10)]
     pub frames: usize,
+    /// Time this field file (e.g. one `isrf train` wrote) instead of a demo
+    /// scene, from views around its box
+    #[arg(long, value_name = "FIELD")]
+    pub field: Option<std::path::PathBuf>,
 }
 
 #[cfg(feature = "editor")]
@@ -92,6 +96,9 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         gpu_available(),
         "no GPU adapter (on a machine without a GPU install mesa-vulkan-drivers and set WGPU_BACKEND=vulkan)"
     );
+    if let Some(path) = &a.field {
+        return bench_field(&a, path);
+    }
     let t0 = Instant::now();
     let d = isrf::demo::build(&a.scene, a.res, 0)?;
     println!(
@@ -181,6 +188,86 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         stroke_to_visible(&mut r, &a, object, &views[0], 0.5, "")?;
     }
     println!("fps while moving (½ resolution, the editor's default on software GPUs): {moving_fps:.2}");
+    println!("fps: {full_fps:.2}");
+    Ok(())
+}
+
+/// `isrf bench editor --field`: frames per second of a field file, from
+/// four views around its box, with the whole field, half resolution, and an
+/// object (the occupied voxels of the box's central eighth) moved.
+#[cfg(feature = "editor")]
+fn bench_field(a: &BenchArgs, path: &std::path::Path) -> Result<()> {
+    use isrf::app::headless::HeadlessRenderer;
+    use isrf::camera::{Camera, Intrinsics};
+    use isrf::field::Bitmap;
+    use isrf::render::Scene;
+    use std::sync::Arc;
+    use std::time::Instant;
+
+    let t0 = Instant::now();
+    let field = Arc::new(isrf::field::io::load(path)?);
+    let res = field.res();
+    println!(
+        "editor view (GPU ray marcher), {} ({}x{}x{}) loaded in {:.1} s, {}x{} pixels",
+        path.display(),
+        res[0],
+        res[1],
+        res[2],
+        t0.elapsed().as_secs_f64(),
+        a.width,
+        a.height
+    );
+    let mut r = HeadlessRenderer::new(a.width, a.height)?;
+    if let Some(info) = r.adapter_info() {
+        println!("adapter: {info}");
+    }
+    let b = field.bounds();
+    let (centre, size) = ((b.min + b.max) * 0.5, b.max - b.min);
+    let k = Intrinsics::from_fov_x(a.width, a.height, 50f32.to_radians());
+    let dist = 1.3 * size.length();
+    let views: Vec<Camera> = [(-0.5f32, 0.3f32), (0.5, 0.3), (-0.2, -0.2), (0.2, 0.6)]
+        .iter()
+        .map(|&(yaw, pitch)| {
+            let dir = glam::Vec3::new(yaw.sin() * pitch.cos(), pitch.sin(), yaw.cos() * pitch.cos());
+            Camera::look_at(k, centre + dir * dist, centre, glam::Vec3::Y)
+        })
+        .collect();
+    // The object: occupied voxels in the central eighth of the box.
+    let mid = |i: usize, a: usize| (res[a] / 4..3 * res[a] / 4).contains(&i);
+    let mask = Arc::new(Bitmap::from_fn(res, |v| {
+        let (x, y, z) = (v % res[0], v / res[0] % res[1], v / (res[0] * res[1]));
+        mid(x, 0) && mid(y, 1) && mid(z, 2) && field.density.sigma_at(v) > 0.01
+    }));
+    let single = Arc::new(Scene::single(field.clone()));
+    let moved = Arc::new(moved_object_scene(mask, &field));
+    let t1 = Instant::now();
+    r.set_camera(&views[0])?;
+    r.set_scene(single.clone());
+    r.wait_drawn()?;
+    let status = r.render_status();
+    println!(
+        "first frame (pack + upload + pipeline) {:.1} s; GPU pool {} MB, upload {:.0} ms{}",
+        t1.elapsed().as_secs_f64(),
+        status.pool_bytes.div_ceil(1 << 20),
+        status.upload_ms,
+        status.detail.map(|d| format!("; {d}")).unwrap_or_default()
+    );
+    println!("every timed frame marches: the camera moves a little between frames");
+    println!("{:<28} {:>10} {:>10}", "scene", "ms/frame", "fps");
+    let rows = [
+        ("field", single.clone(), 1.0),
+        ("field + one moved object", moved.clone(), 1.0),
+        ("field, ½ res (moving)", single.clone(), 0.5),
+    ];
+    let mut full_fps = 0.0;
+    for (i, (name, scene, scale)) in rows.into_iter().enumerate() {
+        r.set_render_scale(scale);
+        let fps = time_frames(&mut r, scene, &views, a.frames, true)?;
+        if i == 0 {
+            full_fps = fps;
+        }
+        println!("{name:<28} {:>10.1} {:>10.2}", 1e3 / fps, fps);
+    }
     println!("fps: {full_fps:.2}");
     Ok(())
 }

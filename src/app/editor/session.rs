@@ -260,13 +260,17 @@ pub fn sync_entities(
                         .collect();
                     state.capture_cameras.extend(views);
                 } else if let crate::command::FieldSource::File(p) = &f.source {
-                    // transforms.json beside a field file gives its views.
-                    let tj = p.parent().map(|d| d.join("transforms.json"));
-                    if let Some(set) = tj
+                    // The views of the capture a field was trained on:
+                    // `isrf train`'s `<stem>.cameras.json`, else a
+                    // transforms.json beside the file. Forward-facing
+                    // captures' cameras see the field through NDC, which a
+                    // pinhole view cannot show, so only plain ones count.
+                    let set = capture_camera_files(p)
+                        .into_iter()
                         .filter(|t| t.exists())
-                        .and_then(|t| crate::camera::CameraSet::load(&t).ok())
-                    {
-                        state.capture_cameras.extend(set.frames.into_iter().map(|c| {
+                        .find_map(|t| crate::camera::CameraSet::load(&t).ok());
+                    if let Some(set) = set {
+                        state.capture_cameras.extend(set.frames.into_iter().filter(|c| c.camera.ndc.is_none()).map(|c| {
                             let mut cam = c.camera;
                             cam.c2w = f.transform * cam.c2w;
                             (format!("{}: {}", f.name, c.name), cam)
@@ -330,4 +334,14 @@ pub fn sync_entities(
     if state.background != st.background {
         state.background = st.background;
     }
+}
+
+/// Camera files that may hold a field file's capture views, best first:
+/// `isrf train`'s `<stem>.cameras.json`, then `transforms.json` beside it.
+fn capture_camera_files(field: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let name = field.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
+    let mut out = vec![field.with_file_name(format!("{stem}.cameras.json"))];
+    out.extend(field.parent().map(|d| d.join("transforms.json")));
+    out
 }

@@ -670,11 +670,18 @@ fn status_line(
         }
         if gpu.uploads > 0 {
             ui.separator();
-            ui.label(format!("GPU upload {:.0} ms", gpu.upload_ms));
+            ui.label(format!(
+                "GPU upload {:.0} ms, {} MB",
+                gpu.upload_ms,
+                gpu.pool_bytes.div_ceil(1 << 20)
+            ));
         }
     });
     if let Some(e) = &gpu.error {
         ui.colored_label(egui::Color32::RED, format!("GPU view: {e}"));
+    }
+    if let Some(d) = &gpu.detail {
+        ui.colored_label(egui::Color32::YELLOW, format!("GPU view: {d}"));
     }
     let mut dismiss = None;
     for (i, e) in state.errors.iter().enumerate() {

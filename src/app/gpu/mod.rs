@@ -11,16 +11,20 @@
 //!
 //! Flow (as bevy's own render features): the main world holds a
 //! [`MarchScene`] resource (the library's `render::Scene`, shared with `Arc`s,
-//! so extraction copies pointers); `prepare_scene` packs and uploads each
-//! field's grids once (keyed by the field's `Arc` identity; see [`pack`] for
-//! the layout) and re-uploads only the mask bitmaps whose contents changed;
+//! so extraction copies pointers); `prepare_scene` packs and uploads the
+//! occupied bricks of the fields' grids when the set of fields changes
+//! (keyed by the fields' `Arc` identity; see [`pool`] and [`pack`] for the
+//! layout, within the device's limits and [`MarchScene::memory_budget`],
+//! at a coarser level of detail when the scene does not fit) and
+//! re-uploads only the mask bitmaps whose contents changed;
 //! `view::prepare_views` decides per view whether to march and builds the
 //! bind groups; `view::raymarch_pass` runs in the `Core3d` schedule.
 
 pub mod pack;
+pub mod pool;
 mod view;
 
-use crate::field::{Bitmap, Field};
+use crate::field::Field;
 use crate::render::Scene;
 use bevy::asset::{Assets, Handle};
 use bevy::core_pipeline::core_3d::main_opaque_pass_3d;
@@ -37,10 +41,11 @@ use bevy::render::render_resource::{
     SamplerBindingType, SamplerDescriptor, ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines,
     TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType, TextureUsages, TextureView,
 };
+use bevy::render::error_handler::{ErrorType, RenderError, RenderErrorHandler, RenderErrorPolicy};
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::{Render, RenderApp, RenderStartup, RenderSystems};
 use bevy::shader::{Shader, ShaderDefVal};
-use pack::{GpuLayer, GpuView, Overlay, PackedField};
+use pack::{GpuLayer, GpuView, MaskRef, Overlay, PackedField};
 use std::num::NonZero;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -54,6 +59,17 @@ pub struct MarchScene {
     /// World-space sample spacing; `None` = [`Scene::default_step`].
     pub step: Option<f32>,
     pub min_transmittance: f32,
+    /// Bytes of GPU memory the pool textures may take; beyond it the view
+    /// shows a coarser level of detail ([`pool::plan`]).
+    pub memory_budget: usize,
+}
+
+/// Default [`MarchScene::memory_budget`]: 2 GiB, or `ISRF_GPU_BUDGET_MB`.
+pub fn default_memory_budget() -> usize {
+    std::env::var("ISRF_GPU_BUDGET_MB")
+        .ok()
+        .and_then(|v| v.trim().parse::<usize>().ok())
+        .map_or(2 << 30, |mb| mb << 20)
 }
 
 impl Default for MarchScene {
@@ -63,6 +79,7 @@ impl Default for MarchScene {
             overlay: Vec::new(),
             step: None,
             min_transmittance: 1e-4,
+            memory_budget: default_memory_budget(),
         }
     }
 }
@@ -111,6 +128,17 @@ pub struct RenderStatus {
     pub full_resolution: bool,
     /// Last upload or packing error (shown in the UI).
     pub error: Option<String>,
+    /// Why the view shows a coarser level of detail than the fields have
+    /// (shown in the UI); `None` at full detail.
+    pub detail: Option<String>,
+    /// Grid points per pool texel of the fields shown (1: full detail).
+    pub stride: usize,
+    /// Bytes of the uploaded pool textures.
+    pub pool_bytes: usize,
+    /// A GPU error (wgpu validation, out of memory) reported while drawing
+    /// the fields of upload generation `.0`: that scene is not drawn again
+    /// until the fields change. The editor keeps running.
+    pub gpu_error: Option<(u64, String)>,
     /// Milliseconds spent uploading grids, last time any were uploaded.
     pub upload_ms: f64,
     pub uploads: u64,
@@ -151,6 +179,7 @@ impl Plugin for RayMarchPlugin {
         let status = SharedStatus::default();
         app.init_resource::<MarchScene>()
             .insert_resource(status.clone())
+            .insert_resource(RenderErrorHandler(keep_running_on_gpu_errors))
             .add_plugins((
                 ExtractResourcePlugin::<MarchScene>::default(),
                 ExtractComponentPlugin::<RayMarchCamera>::default(),
@@ -184,6 +213,28 @@ impl Plugin for RayMarchPlugin {
     }
 }
 
+/// bevy quits the app on any wgpu error by default. An editor must not
+/// lose the user's session to a drawing problem: the error goes to the
+/// status line, and the scene that caused it is not drawn again until its
+/// fields change (drawing it again would repeat the error every frame).
+/// Only a lost device stops rendering (the app keeps running, so the edit
+/// log can still be saved).
+fn keep_running_on_gpu_errors(error: &RenderError, main: &mut World, render: &mut World) -> RenderErrorPolicy {
+    let generation = render.get_resource::<GpuSceneCache>().map_or(0, |c| c.generation);
+    let first_line = error.description.lines().find(|l| !l.trim().is_empty()).unwrap_or("");
+    let msg = format!("GPU error ({:?}): {}", error.ty, first_line.trim());
+    if let Some(status) = main.get_resource::<SharedStatus>() {
+        status.update(|s| {
+            s.gpu_error = Some((generation, msg.clone()));
+            s.error = Some(msg);
+        });
+    }
+    match error.ty {
+        ErrorType::DeviceLost => RenderErrorPolicy::StopRendering,
+        _ => RenderErrorPolicy::Ignore,
+    }
+}
+
 #[derive(Resource)]
 struct RayMarchShaders {
     march: Handle<Shader>,
@@ -209,8 +260,14 @@ fn init_pipeline(mut commands: Commands, shaders: Res<RayMarchShaders>, fullscre
                 storage(),
                 storage(),
                 storage(),
-                storage(),
-                storage(),
+                // The pool textures: density, RGB, then the SH textures.
+                texture_3d(TextureSampleType::Float { filterable: true }),
+                texture_3d(TextureSampleType::Float { filterable: true }),
+                texture_3d(TextureSampleType::Float { filterable: true }),
+                texture_3d(TextureSampleType::Float { filterable: true }),
+                texture_3d(TextureSampleType::Float { filterable: true }),
+                texture_3d(TextureSampleType::Float { filterable: true }),
+                texture_3d(TextureSampleType::Float { filterable: true }),
                 texture_3d(TextureSampleType::Float { filterable: true }),
                 texture_3d(TextureSampleType::Float { filterable: true }),
                 sampler(SamplerBindingType::Filtering),
@@ -328,7 +385,10 @@ impl SpecializedRenderPipeline for RayMarchPipeline {
 }
 
 struct FieldSlot {
+    /// The scene's field (its identity).
     field: Arc<Field>,
+    /// What is drawn of it ([`pack::drawn_field`]).
+    drawn: Arc<Field>,
     packed: PackedField,
 }
 
@@ -338,15 +398,18 @@ struct GpuSceneCache {
     fields: Vec<FieldSlot>,
     /// The fields' records as uploaded (absolute offsets).
     field_infos: Vec<pack::GpuField>,
-    bitmaps: Vec<Arc<Bitmap>>,
+    /// The level of detail and brick layout uploaded.
+    plan: Option<pool::PoolPlan>,
+    /// The budget `plan` was made for.
+    budget: usize,
+    /// Fields (pointers) and budget that could not be uploaded, and why.
+    failed: Option<(Vec<usize>, usize, String)>,
+    bitmaps: Vec<MaskRef>,
     bitmap_words: usize,
     bitmap_buffer: Option<Buffer>,
     field_buffer: Option<Buffer>,
     aux_buffer: Option<Buffer>,
-    density_buffer: Option<Buffer>,
-    color_buffer: Option<Buffer>,
-    /// The [`pack::Atlas`] textures (density, RGB) and their trilinear
-    /// sampler.
+    /// The pool textures and their trilinear sampler.
     atlas: Option<AtlasTextures>,
     layer_buffer: Option<Buffer>,
     layers: Vec<GpuLayer>,
@@ -362,23 +425,35 @@ struct GpuSceneCache {
 /// A storage buffer holding `data`, padded to a multiple of 16 bytes and to
 /// at least 256: empty bindings are not allowed, and a runtime-sized array
 /// binding must hold one element (`Layer` is 160 bytes) even when the scene
-/// is empty.
-fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> Buffer {
+/// is empty. Refuses (with a message naming `what`) data beyond the
+/// device's binding limit, which would otherwise be a validation error.
+fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> crate::Result<Buffer> {
+    let limits = device.limits();
+    let max = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size) as usize;
+    crate::ensure!(
+        data.len() <= max,
+        "{label}: {} MB exceed the GPU's {} MB storage binding limit",
+        data.len() >> 20,
+        max >> 20
+    );
     let mut bytes = data.to_vec();
     bytes.resize(bytes.len().max(256).next_multiple_of(16), 0);
-    device.create_buffer_with_data(&BufferInitDescriptor {
+    Ok(device.create_buffer_with_data(&BufferInitDescriptor {
         label: Some(label),
         contents: &bytes,
         usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
-    })
+    }))
 }
 
-/// The atlas on the GPU.
+/// The pool on the GPU; textures a scene does not use hold one texel.
 struct AtlasTextures {
     density: TextureView,
     rgb: TextureView,
+    sh: Vec<TextureView>,
     sampler: Sampler,
     size: [usize; 3],
+    /// Pool bricks per axis.
+    bricks: [usize; 3],
 }
 
 /// A 3D texture of `size` holding `data` (texels x fastest).
@@ -419,30 +494,41 @@ fn texture_3d_with(
     texture.create_view(&default())
 }
 
-/// Uploads the atlas. Density goes up as f16: filterable on every GPU
+/// A pool texture: `data` at the pool's size, or one zero texel when the
+/// scene has no data of this kind (the binding still needs a texture).
+fn pool_texture<T: bytemuck::Pod>(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    label: &'static str,
+    format: TextureFormat,
+    size: [usize; 3],
+    data: &[T],
+) -> TextureView {
+    if data.is_empty() {
+        let zero = vec![0u8; format.block_copy_size(None).unwrap_or(4) as usize];
+        return texture_3d_with(device, queue, label, format, [1, 1, 1], &zero);
+    }
+    texture_3d_with(device, queue, label, format, size, bytemuck::cast_slice(data))
+}
+
+/// Uploads the pool. Density goes up as f16: filterable on every GPU
 /// without an optional feature, at full filtering rate, in half the memory;
 /// raw densities keep 3 significant digits, far below what the tests'
-/// GPU-vs-CPU comparison can see.
-fn upload_atlas(device: &RenderDevice, queue: &RenderQueue, a: &pack::Atlas) -> AtlasTextures {
-    let half: Vec<u16> = a.density.iter().map(|&v| half::f16::from_f32(v).to_bits()).collect();
-    let density = texture_3d_with(
-        device,
-        queue,
-        "isrf_atlas_density",
-        TextureFormat::R16Float,
-        a.size,
-        bytemuck::cast_slice(&half),
-    );
-    let rgb = texture_3d_with(
-        device,
-        queue,
-        "isrf_atlas_rgb",
-        TextureFormat::Rgb10a2Unorm,
-        a.size,
-        bytemuck::cast_slice(&a.rgb),
-    );
+/// GPU-vs-CPU comparison can see. SH coefficients are f16 in the fields
+/// already.
+fn upload_pool(device: &RenderDevice, queue: &RenderQueue, t: &pack::PoolTextures, bricks: [usize; 3]) -> AtlasTextures {
+    let size = t.size;
+    let density = pool_texture(device, queue, "isrf_pool_density", TextureFormat::R16Float, size, &t.density);
+    let rgb = pool_texture(device, queue, "isrf_pool_rgb", TextureFormat::Rgb10a2Unorm, size, &t.rgb);
+    let no_sh: Vec<[u16; 4]> = Vec::new();
+    let sh = (0..pack::SH_TEXTURES)
+        .map(|k| {
+            let data = t.sh.get(k).unwrap_or(&no_sh);
+            pool_texture(device, queue, "isrf_pool_sh", TextureFormat::Rgba16Float, size, data)
+        })
+        .collect();
     let sampler = device.create_sampler(&SamplerDescriptor {
-        label: Some("isrf_atlas_sampler"),
+        label: Some("isrf_pool_sampler"),
         address_mode_u: AddressMode::ClampToEdge,
         address_mode_v: AddressMode::ClampToEdge,
         address_mode_w: AddressMode::ClampToEdge,
@@ -453,8 +539,10 @@ fn upload_atlas(device: &RenderDevice, queue: &RenderQueue, a: &pack::Atlas) -> 
     AtlasTextures {
         density,
         rgb,
+        sh,
         sampler,
-        size: a.size,
+        size,
+        bricks,
     }
 }
 
@@ -474,13 +562,20 @@ fn prepare_scene(
         status.update(|s| s.error = Some(e.to_string()));
         return;
     }
-    cache.ready = true;
+    // A scene that made the GPU report an error is not drawn again until
+    // its fields or masks change (see `keep_running_on_gpu_errors`).
+    let generation = cache.generation;
+    let failed = status.get().gpu_error.is_some_and(|(g, _)| g == generation);
+    cache.ready = !failed;
 }
 
-/// Packs and uploads the fields when the set of fields changes.
+/// Packs and uploads the fields when the set of fields (or the memory
+/// budget) changes: the finest level of detail whose occupied bricks fit
+/// the device and the budget ([`pool::plan`]).
 fn update_fields(
     cache: &mut GpuSceneCache,
     wanted: &[Arc<Field>],
+    budget: usize,
     device: &RenderDevice,
     queue: &RenderQueue,
     status: &SharedStatus,
@@ -488,9 +583,29 @@ fn update_fields(
     let same =
         wanted.len() == cache.fields.len() && wanted.iter().zip(&cache.fields).all(|(a, b)| Arc::ptr_eq(a, &b.field));
     // (An empty scene still needs its empty buffers, to draw the background.)
-    if same && cache.field_buffer.is_some() {
+    if same && cache.budget == budget && cache.field_buffer.is_some() {
         return Ok(());
     }
+    // A set of fields that did not fit is not packed again every frame.
+    let key: Vec<usize> = wanted.iter().map(|f| Arc::as_ptr(f) as usize).collect();
+    if let Some((k, b, e)) = &cache.failed {
+        if *k == key && *b == budget {
+            return Err(crate::Error::invalid(e.clone()));
+        }
+    }
+    let result = upload_fields(cache, wanted, budget, device, queue, status);
+    cache.failed = result.as_ref().err().map(|e| (key, budget, e.to_string()));
+    result
+}
+
+fn upload_fields(
+    cache: &mut GpuSceneCache,
+    wanted: &[Arc<Field>],
+    budget: usize,
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    status: &SharedStatus,
+) -> crate::Result<()> {
     let t0 = Instant::now();
     let mut old = std::mem::take(&mut cache.fields);
     let mut packed = 0;
@@ -498,66 +613,92 @@ fn update_fields(
         match old.iter().position(|s| Arc::ptr_eq(&s.field, f)) {
             Some(i) => cache.fields.push(old.swap_remove(i)),
             None => {
+                let drawn = pack::drawn_field(f)?;
+                let p = pack::pack_field(&drawn)?;
                 cache.fields.push(FieldSlot {
                     field: f.clone(),
-                    packed: pack::pack_field(f)?,
+                    drawn,
+                    packed: p,
                 });
                 packed += 1;
             }
         }
     }
+    // Whatever fails from here leaves no half-updated scene behind.
+    cache.plan = None;
+    cache.field_buffer = None;
+    let drawn: Vec<&Field> = cache.fields.iter().map(|s| &*s.drawn).collect();
+    let densities: Vec<&crate::field::DensityGrid> = drawn.iter().map(|f| &f.density).collect();
+    let max_side = device.limits().max_texture_dimension_3d as usize;
+    let plan = pool::plan(&densities, pack::pool_texel_bytes(&drawn), max_side, budget)?;
     let parts: Vec<&PackedField> = cache.fields.iter().map(|s| &s.packed).collect();
-    let (mut infos, density, colors, aux) = pack::concat_fields(&parts);
-    let grids: Vec<(&[f32], &[u32], [usize; 3])> = cache
-        .fields
-        .iter()
-        .map(|s| (&s.field.density.raw[..], &s.packed.rgb[..], s.field.res()))
-        .collect();
-    let atlas = pack::atlas(&grids, device.limits().max_texture_dimension_3d as usize)?;
-    for (info, z0) in infos.iter_mut().zip(&atlas.z0) {
-        info.offsets[3] = *z0 as u32;
-    }
-    cache.atlas = Some(upload_atlas(device, queue, &atlas));
-    crate::ensure!(
-        density.len() < u32::MAX as usize && aux.len() < u32::MAX as usize,
-        "the fields are too large for the GPU view"
-    );
-    cache.field_buffer = Some(storage_buffer(device, "isrf_fields", bytemuck::cast_slice(&infos)));
+    let (infos, aux) = pack::concat_fields(&parts, &plan)?;
+    let textures = pack::pool_textures(&drawn, &plan);
+    cache.atlas = Some(upload_pool(device, queue, &textures, plan.layout.bricks));
+    drop(textures);
+    cache.aux_buffer = Some(storage_buffer(device, "isrf_aux", bytemuck::cast_slice(&aux))?);
+    cache.field_buffer = Some(storage_buffer(device, "isrf_fields", bytemuck::cast_slice(&infos))?);
     cache.field_infos = infos;
-    cache.aux_buffer = Some(storage_buffer(device, "isrf_aux", bytemuck::cast_slice(&aux)));
-    cache.density_buffer = Some(storage_buffer(device, "isrf_density", bytemuck::cast_slice(&density)));
-    cache.color_buffer = Some(storage_buffer(device, "isrf_colors", bytemuck::cast_slice(&colors)));
+    cache.budget = budget;
+    // Masks are laid out by the new bricks: upload them all again.
+    cache.bitmaps.clear();
+    cache.bitmap_buffer = None;
     cache.generation += 1;
     let ms = t0.elapsed().as_secs_f64() * 1e3;
+    let detail = (plan.stride > 1).then(|| {
+        format!(
+            "showing 1/{} of the grid resolution: at full detail the fields need more than the {} GPU \
+             memory budget (ISRF_GPU_BUDGET_MB) or the GPU's {max_side}-texel 3D textures",
+            plan.stride,
+            crate::util::human_bytes(budget)
+        )
+    });
     status.update(|s| {
         s.upload_ms = ms;
         s.uploads += packed;
+        s.stride = plan.stride;
+        s.pool_bytes = plan.bytes;
+        s.detail = detail;
     });
+    cache.plan = Some(plan);
     Ok(())
 }
 
+/// A mask's words in its field's brick order (empty before any plan).
+fn mask_words(cache: &GpuSceneCache, m: &MaskRef) -> Vec<u32> {
+    let slot = cache.fields.iter().position(|s| Arc::ptr_eq(&s.field, &m.field));
+    match (&cache.plan, slot) {
+        (Some(plan), Some(i)) => pool::brick_bits(&plan.fields[i], &m.bits),
+        _ => Vec::new(),
+    }
+}
+
 /// Uploads mask bitmaps: only those whose contents changed when the layout
-/// (sizes in order) is unchanged; the whole buffer otherwise.
+/// (masks and fields in order) is unchanged; the whole buffer otherwise.
 fn update_bitmaps(
     cache: &mut GpuSceneCache,
-    bitmaps: Vec<Arc<Bitmap>>,
+    bitmaps: Vec<MaskRef>,
     offs: &[u32],
     total: usize,
     device: &RenderDevice,
     queue: &RenderQueue,
     status: &SharedStatus,
-) {
+) -> crate::Result<()> {
     let same_layout = cache.bitmap_buffer.is_some()
         && total == cache.bitmap_words
         && bitmaps.len() == cache.bitmaps.len()
-        && bitmaps.iter().zip(&cache.bitmaps).all(|(a, b)| a.len() == b.len());
+        && bitmaps
+            .iter()
+            .zip(&cache.bitmaps)
+            .all(|(a, b)| Arc::ptr_eq(&a.field, &b.field) && a.bits.len() == b.bits.len());
     if same_layout {
         let mut n = 0;
-        for (k, b) in bitmaps.iter().enumerate() {
+        for (k, m) in bitmaps.iter().enumerate() {
+            let old = &cache.bitmaps[k].bits;
             // A new Arc with the same bits (a scene rebuilt during a drag)
             // needs no upload.
-            if !Arc::ptr_eq(b, &cache.bitmaps[k]) && **b != *cache.bitmaps[k] {
-                let words = pack::bitmap_u32(b);
+            if !Arc::ptr_eq(&m.bits, old) && *m.bits != **old {
+                let words = mask_words(cache, m);
                 queue.write_buffer(
                     cache.bitmap_buffer.as_ref().unwrap(),
                     offs[k] as u64 * 4,
@@ -572,16 +713,31 @@ fn update_bitmaps(
         }
     } else {
         let mut words = Vec::with_capacity(total);
-        for b in &bitmaps {
-            words.extend(pack::bitmap_u32(b));
+        for m in &bitmaps {
+            words.extend(mask_words(cache, m));
         }
-        cache.bitmap_buffer = Some(storage_buffer(device, "isrf_bitmaps", bytemuck::cast_slice(&words)));
+        cache.bitmap_buffer = Some(storage_buffer(device, "isrf_bitmaps", bytemuck::cast_slice(&words))?);
         cache.bitmap_words = total;
         cache.generation += 1;
         let n = bitmaps.len() as u64;
         status.update(|s| s.bitmap_uploads += n);
     }
     cache.bitmaps = bitmaps;
+    Ok(())
+}
+
+/// Mask words per occupied brick of each mask's field.
+fn mask_word_counts(cache: &GpuSceneCache, bitmaps: &[MaskRef]) -> Vec<usize> {
+    bitmaps
+        .iter()
+        .map(|m| {
+            let slot = cache.fields.iter().position(|s| Arc::ptr_eq(&s.field, &m.field));
+            match (&cache.plan, slot) {
+                (Some(plan), Some(i)) => plan.fields[i].count() * pool::BRICK_WORDS,
+                _ => 0,
+            }
+        })
+        .collect()
 }
 
 fn update_cache(
@@ -593,10 +749,11 @@ fn update_cache(
     status: &SharedStatus,
 ) -> crate::Result<()> {
     let wanted = pack::distinct_fields(scene);
-    update_fields(cache, &wanted, device, queue, status)?;
+    update_fields(cache, &wanted, march.memory_budget, device, queue, status)?;
     let bitmaps = pack::distinct_bitmaps(scene, &march.overlay);
-    let (offs, total) = pack::bitmap_offsets(&bitmaps);
-    update_bitmaps(cache, bitmaps, &offs, total, device, queue, status);
+    let counts = mask_word_counts(cache, &bitmaps);
+    let (offs, total) = pack::bitmap_offsets(bitmaps.len(), |k| counts[k]);
+    update_bitmaps(cache, bitmaps, &offs, total, device, queue, status)?;
     // Layers: small, repacked every frame.
     let layers = pack::pack_layers(scene, &wanted, &cache.bitmaps, &offs, &march.overlay)?;
     let bytes: &[u8] = bytemuck::cast_slice(&layers);
@@ -607,7 +764,7 @@ fn update_cache(
     if fits && !bytes.is_empty() {
         queue.write_buffer(cache.layer_buffer.as_ref().unwrap(), 0, bytes);
     } else if !fits {
-        cache.layer_buffer = Some(storage_buffer(device, "isrf_layers", bytes));
+        cache.layer_buffer = Some(storage_buffer(device, "isrf_layers", bytes)?);
     }
     cache.layers = layers;
     // An empty scene (nothing loaded yet) draws the background; any step will do.
@@ -625,7 +782,11 @@ fn update_cache(
     cache.background = [bg.x, bg.y, bg.z, 1.0];
     cache.min_transmittance = march.min_transmittance;
     cache.scene_ptr = Arc::as_ptr(scene) as usize;
-    status.update(|s| s.error = None);
+    let generation = cache.generation;
+    status.update(|s| {
+        // Keep a GPU error on show while its scene is the one shown.
+        s.error = s.gpu_error.as_ref().filter(|(g, _)| *g == generation).map(|(_, m)| m.clone());
+    });
     Ok(())
 }
 

@@ -3,28 +3,22 @@
 //! data (no bevy types), so they are unit-tested without a GPU.
 //!
 //! Layout contract with the shader (every struct is made of 16-byte vectors
-//! so that WGSL's uniform/storage layout rules equal `#[repr(C)]`); all
-//! fields' arrays are concatenated, and [`GpuField::offsets`] say where each
-//! field's part starts:
-//! - the density and RGB colour textures (3D, sampled with the GPU's
-//!   trilinear filter): every field's grid stacked along z in one
-//!   [`Atlas`], raw density (uploaded as f16) and [`rgb10a2`] colours
-//!   (alpha = stored, so sparse colours renormalise over stored corners
-//!   like `ChannelGrid::sample`); [`GpuField::offsets`]`[3]` is the field's
-//!   first slice;
-//! - `density` (`array<f32>`): raw density per grid point again, in the
-//!   bricked order of [`bricked_index`], for masks (which weight each
-//!   corner's bit by its own density);
-//! - `colors` (`array<u32>`): SH appearance: see [`sh_colors`] (kind in
-//!   `GpuField::res[3]`); nothing for RGB fields;
-//! - `aux` (`array<u32>`): per field the empty-space grid (one byte per
-//!   skip cell, see [`skip_grid`]);
-//! - `bitmaps` (`array<u32>`): the packed words of every mask (bit `i` is bit
-//!   `i & 31` of word `offset + i >> 5`).
-
+//! so that WGSL's uniform/storage layout rules equal `#[repr(C)]`):
+//! - the pool textures (3D, sampled with the GPU's trilinear filter): the
+//!   occupied bricks of every field ([`super::pool`]): raw density (f16),
+//!   [`rgb10a2`] colours (alpha = stored, so sparse colours renormalise over
+//!   stored corners like `ChannelGrid::sample`) and SH coefficients in
+//!   [`SH_TEXTURES`] RGBA f16 textures ([`sh_texel`]); nothing is stored for
+//!   empty space;
+//! - `aux` (`array<u32>`): per field its empty-space grid (one byte per
+//!   skip cell, see [`skip_grid`]) and its brick indirection grid;
+//!   [`GpuField::skip`]`[3]` and [`GpuField::offsets`]`[0]` say where;
+//! - `bitmaps` (`array<u32>`): the words of every mask, in its field's
+//!   brick order ([`super::pool::brick_bits`]).
 use crate::field::macro_grid::EMPTY_SIGMA;
 use crate::field::{Activation, Appearance, Bitmap, ChannelGrid, DensityGrid, Field, Layout};
 use crate::render::{Mask, Scene};
+use super::pool::PoolPlan;
 use crate::{ensure, Result};
 use bytemuck::{Pod, Zeroable};
 use glam::{Affine3A, Mat4, Vec3};
@@ -50,50 +44,6 @@ pub const MASK_ALL: u32 = 0;
 pub const MASK_KEEP: u32 = 1;
 pub const MASK_REMOVE: u32 = 2;
 
-/// Grid points per brick edge: per-point arrays are stored in 4³ bricks.
-pub const BRICK: usize = 4;
-
-/// Bricks per axis for a grid of `res` points.
-pub fn brick_dims(res: [usize; 3]) -> [usize; 3] {
-    res.map(|n| n.div_ceil(BRICK))
-}
-
-/// Where grid point (x, y, z) sits in a bricked per-point array: bricks of
-/// 4³ = 64 points one after the other (x fastest, then y, then z), points
-/// in a brick in the same order. A cell's 8 corners and its neighbours'
-/// then share cache lines and pages; with x-fastest rows a step in z is a
-/// whole slice away. (On lavapipe, with x-fastest rows, confining the
-/// colour loads to an L2-sized window made frames 20 % faster, and with
-/// bricks it no longer changed them; whole-frame A/B runs were within this
-/// machine's noise. The density and RGB colours now come from the atlas
-/// textures; masks and SH colours still read these arrays.)
-pub fn bricked_index(res: [usize; 3], x: usize, y: usize, z: usize) -> usize {
-    let b = brick_dims(res);
-    let brick = (z / BRICK * b[1] + y / BRICK) * b[0] + x / BRICK;
-    brick * BRICK.pow(3) + ((z % BRICK) * BRICK + y % BRICK) * BRICK + x % BRICK
-}
-
-/// A per-point array in bricked order: `value(v)` for grid point v (linear
-/// index, x fastest), `fill` for the padding of partial bricks.
-fn bricked<T: Copy + Send + Sync>(res: [usize; 3], fill: T, value: impl Fn(usize) -> T + Sync) -> Vec<T> {
-    let b = brick_dims(res);
-    let per = BRICK.pow(3);
-    (0..b[0] * b[1] * b[2] * per)
-        .into_par_iter()
-        .map(|i| {
-            let (brick, w) = (i / per, i % per);
-            let x = brick % b[0] * BRICK + w % BRICK;
-            let y = brick / b[0] % b[1] * BRICK + w / BRICK % BRICK;
-            let z = brick / (b[0] * b[1]) * BRICK + w / (BRICK * BRICK);
-            if x < res[0] && y < res[1] && z < res[2] {
-                value(x + res[0] * (y + res[1] * z))
-            } else {
-                fill
-            }
-        })
-        .collect()
-}
-
 /// Per-view parameters (uniform).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
@@ -110,8 +60,10 @@ pub struct GpuView {
     pub march: [f32; 4],
     /// layer count, 0, 0, 0.
     pub counts: [u32; 4],
-    /// 1 / the atlas textures' size in texels (xyz), 0.
+    /// 1 / the pool textures' size in texels (xyz), 0.
     pub atlas: [f32; 4],
+    /// The pool's bricks per axis (xyz), 0.
+    pub pool: [u32; 4],
 }
 
 /// One layer (storage buffer, array).
@@ -143,10 +95,13 @@ pub struct GpuField {
     pub bounds_min: [f32; 4],
     /// xyz; w = activation kind (0 relu, 1 softplus).
     pub bounds_max: [f32; 4],
-    /// nx, ny, nz, colour kind ([`COLOR_SPARSE`] | [`COLOR_SH`]).
+    /// Grid points per axis at the level of detail shown (the field's
+    /// resolution, or every stride-th point: [`super::pool`]), colour kind
+    /// ([`COLOR_SPARSE`] | [`COLOR_SH`]). `bounds_max` is then the last
+    /// point shown.
     pub res: [u32; 4],
-    /// Offsets: density (f32), colours (u32), SH coefficients (u32), first
-    /// atlas slice.
+    /// Word offset of the brick indirection grid in `aux`, first pool slot,
+    /// 0, 0.
     pub offsets: [u32; 4],
     /// Skip grid dims xyz, offset (aux u32).
     pub skip: [u32; 4],
@@ -154,15 +109,11 @@ pub struct GpuField {
     pub skip_cell: [f32; 4],
 }
 
-/// A field's grids in upload form (offsets relative to its own arrays).
+/// What the GPU view keeps of a field besides its bricks: its empty-space
+/// grid and its record (offsets and level of detail are set when the
+/// scene's fields are concatenated, [`concat_fields`]).
 #[derive(Clone, Debug)]
 pub struct PackedField {
-    /// Raw density, bricked ([`bricked_index`]).
-    pub density: Vec<f32>,
-    /// [`sh_colors`] (empty for RGB fields).
-    pub colors: Vec<u32>,
-    /// [`rgb10a2`] texels per grid point, x fastest (empty for SH fields).
-    pub rgb: Vec<u32>,
     /// Skip grid bytes packed four per u32.
     pub aux: Vec<u32>,
     pub info: GpuField,
@@ -248,25 +199,15 @@ fn sparse_bit(g: &ChannelGrid) -> u32 {
     }
 }
 
-fn rgb_texels(g: &ChannelGrid) -> Vec<u32> {
-    let ch = g.channels;
-    (0..g.geom.len())
-        .into_par_iter()
-        .map(|v| {
-            slot_of(g, v).map_or(0, |s| {
-                let c = &g.data[s * ch..s * ch + 3];
-                rgb10a2([c[0].to_f32(), c[1].to_f32(), c[2].to_f32()])
-            })
-        })
-        .collect()
-}
-
 /// Colour kind bits (`GpuField::res[3]`): the appearance is sparse.
 pub const COLOR_SPARSE: u32 = 1;
 /// Colour kind bits: degree-2 spherical harmonics (else RGB).
 pub const COLOR_SH: u32 = 2;
-/// u32 words per SH grid point: 27 f16 coefficients and one pad.
-pub const SH_WORDS: usize = 14;
+/// RGBA f16 textures holding a grid point's 27 SH coefficients and its
+/// stored flag.
+pub const SH_TEXTURES: usize = 7;
+/// f16 1.0: the stored flag of an SH texel.
+const F16_ONE: u16 = 0x3c00;
 
 fn slot_of(g: &ChannelGrid, v: usize) -> Option<usize> {
     match &g.layout {
@@ -275,71 +216,53 @@ fn slot_of(g: &ChannelGrid, v: usize) -> Option<usize> {
     }
 }
 
-/// The [`SH_WORDS`] words of f16 pairs of one stored point's 27
-/// coefficients (`[r0..r8, g0..g8, b0..b8]`, as `ChannelGrid`).
-fn sh_words(c: &[half::f16]) -> [u32; SH_WORDS] {
-    std::array::from_fn(|w| {
-        let lo = c[2 * w].to_bits() as u32;
-        let hi = c.get(2 * w + 1).map_or(0, |h| h.to_bits() as u32);
-        lo | hi << 16
+/// Texel of SH texture `t` for grid point `v`: f16 channels `4t..4t + 4`
+/// of the point's `[r0..r8, g0..g8, b0..b8, stored]` (coefficients in
+/// `ChannelGrid` order, stored = 1.0); all zero where the appearance
+/// stores nothing. The filter then yields Σ w·coefficient and, in channel
+/// 27, Σ w over the stored corners, the sparse renormalisation.
+pub fn sh_texel(g: &ChannelGrid, v: usize, t: usize) -> [u16; 4] {
+    let Some(s) = slot_of(g, v) else { return [0; 4] };
+    let c = &g.data[s * 27..s * 27 + 27];
+    std::array::from_fn(|k| match 4 * t + k {
+        27 => F16_ONE,
+        i => c[i].to_bits(),
     })
 }
 
-/// SH appearance for the shader: for sparse grids a bricked table with
-/// slot + 1 per grid point (0 = not stored), then the [`sh_words`] of each
-/// stored point; for dense grids the [`sh_words`] of every grid point in
-/// bricked order. Returns the words and where the coefficients start.
-fn sh_colors(g: &ChannelGrid) -> Result<(Vec<u32>, u32)> {
-    ensure!(
-        g.channels == 27,
-        "SH appearance with {} channels (expected 27)",
-        g.channels
-    );
-    let res = g.geom.res;
-    let points = brick_dims(res).iter().product::<usize>() * BRICK.pow(3);
-    let (table, records) = match &g.layout {
-        Layout::Dense => (0, points),
-        Layout::Sparse(_) => (points, g.slots()),
-    };
-    ensure!(
-        table + records * SH_WORDS < u32::MAX as usize,
-        "the SH appearance is too large for the GPU view"
-    );
-    let out: Vec<u32> = match &g.layout {
-        Layout::Dense => bricked(res, [0; SH_WORDS], |v| sh_words(&g.data[v * 27..v * 27 + 27]))
-            .into_iter()
-            .flatten()
-            .collect(),
-        Layout::Sparse(_) => {
-            let mut out = bricked(res, 0, |v| slot_of(g, v).map_or(0, |s| s as u32 + 1));
-            out.extend(g.data.chunks(27).flat_map(sh_words));
-            out
-        }
-    };
-    Ok((out, table as u32))
+/// The [`rgb10a2`] texel of grid point `v` (0 where nothing is stored).
+pub fn rgb_texel(g: &ChannelGrid, v: usize) -> u32 {
+    slot_of(g, v).map_or(0, |s| {
+        let c = &g.data[s * g.channels..s * g.channels + 3];
+        rgb10a2([c[0].to_f32(), c[1].to_f32(), c[2].to_f32()])
+    })
 }
 
-/// Packs a field for upload: RGB or SH appearance (dense or sparse); VM +
-/// MLP appearance is baked into sparse SH first ([`crate::field::bake`]).
+/// Raw density as an f16 texel, clamped to f16's finite range (a raw
+/// value far below any activation's threshold stays far below it).
+pub fn density_texel(raw: f32) -> u16 {
+    half::f16::from_f32(raw.clamp(-65504.0, 65504.0)).to_bits()
+}
+
+/// The field the GPU view draws: VM + MLP appearance baked into SH once
+/// ([`crate::field::bake`]; the ray marcher has no MLP), others as they are.
+pub fn drawn_field(field: &Arc<Field>) -> Result<Arc<Field>> {
+    Ok(field.sh_baked()?.unwrap_or_else(|| field.clone()))
+}
+
+/// Packs what the GPU view keeps of a field besides its bricks (see
+/// [`PackedField`]); `field` is a [`drawn_field`] (RGB or SH appearance).
 pub fn pack_field(field: &Field) -> Result<PackedField> {
-    let geom = field.geom();
-    let (colors, rgb, color_kind, sh_start) = match &field.appearance {
+    let color_kind = match &field.appearance {
         Appearance::Rgb(g) => {
             ensure!(g.channels >= 3, "RGB appearance with {} channels", g.channels);
-            (Vec::new(), rgb_texels(g), sparse_bit(g), 0)
+            sparse_bit(g)
         }
         Appearance::Sh2(g) => {
-            let (c, start) = sh_colors(g)?;
-            (c, Vec::new(), sparse_bit(g) | COLOR_SH, start)
+            ensure!(g.channels == 27, "SH appearance with {} channels (expected 27)", g.channels);
+            sparse_bit(g) | COLOR_SH
         }
-        // The ray marcher has no MLP: the network is baked into SH once,
-        // when the field is first uploaded.
-        Appearance::Vm { .. } => {
-            let baked = field
-                .sh_baked()?
-                .ok_or_else(|| crate::Error::invalid("VM appearance without an SH bake"))?;
-            return pack_field(&baked);
-        }
+        Appearance::Vm { .. } => return Err(crate::Error::invalid("VM appearance must be baked into SH before it is drawn")),
     };
     let (dims, skip) = skip_grid(&field.density);
     let aux: Vec<u32> = skip
@@ -350,97 +273,107 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
         Activation::Relu => (0.0, 0.0),
         Activation::Softplus { shift } => (1.0, shift),
     };
+    let geom = field.geom();
     let b = geom.bounds;
     let cell = geom.spacing() * SKIP_BLOCK as f32;
     Ok(PackedField {
-        density: bricked(geom.res, 0.0, |v| field.density.raw[v]),
-        colors,
-        rgb,
         aux,
         info: GpuField {
             bounds_min: v4(b.min, shift),
             bounds_max: v4(b.max, activation),
             res: [geom.res[0] as u32, geom.res[1] as u32, geom.res[2] as u32, color_kind],
-            offsets: [0, 0, sh_start, 0],
+            offsets: [0; 4],
             skip: [dims[0] as u32, dims[1] as u32, dims[2] as u32, 0],
             skip_cell: v4(cell, 0.0),
         },
     })
 }
 
-/// The fields' grids stacked along z in two 3D textures (x fastest, then
-/// y, then z), each field from its [`GpuField::offsets`]`[3]`th slice;
-/// textures as wide and high as the largest field.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Atlas {
+/// GPU memory per pool texel: f16 density, plus RGB and SH textures when
+/// some field has that kind of colour.
+pub fn pool_texel_bytes(fields: &[&Field]) -> usize {
+    let sh = fields.iter().any(|f| matches!(f.appearance, Appearance::Sh2(_)));
+    let rgb = fields.iter().any(|f| matches!(f.appearance, Appearance::Rgb(_)));
+    2 + if rgb { 4 } else { 0 } + if sh { 8 * SH_TEXTURES } else { 0 }
+}
+
+/// The pool textures' contents (x fastest, [`PoolLayout::fill`]); the RGB
+/// and SH textures are empty when no field has that kind of colour.
+#[derive(Clone, Debug, Default)]
+pub struct PoolTextures {
     pub size: [usize; 3],
-    /// Raw density per texel.
-    pub density: Vec<f32>,
-    /// [`rgb10a2`] per texel (0 for SH fields and padding).
+    /// Raw density, f16 bits ([`density_texel`]).
+    pub density: Vec<u16>,
     pub rgb: Vec<u32>,
-    /// Each field's first slice.
-    pub z0: Vec<usize>,
+    /// [`SH_TEXTURES`] textures of [`sh_texel`]s.
+    pub sh: Vec<Vec<[u16; 4]>>,
 }
 
-/// Stacks the fields' `(raw density, RGB texels (may be empty), res)`
-/// into an [`Atlas`] of at most `max_side` texels per side (the device's
-/// 3D texture limit).
-pub fn atlas(fields: &[(&[f32], &[u32], [usize; 3])], max_side: usize) -> Result<Atlas> {
-    let w = fields.iter().map(|f| f.2[0]).max().unwrap_or(1);
-    let h = fields.iter().map(|f| f.2[1]).max().unwrap_or(1);
-    let z0: Vec<usize> = fields
-        .iter()
-        .scan(0, |z, f| {
-            let at = *z;
-            *z += f.2[2];
-            Some(at)
+/// Fills the pool textures of `plan` from `fields` (the [`drawn_field`]s,
+/// in the plan's order).
+pub fn pool_textures(fields: &[&Field], plan: &PoolPlan) -> PoolTextures {
+    let layout = &plan.layout;
+    let bricks = &plan.fields;
+    // Grid point of a texel, by (field, brick, texel coordinates).
+    let point = |f: usize, b: usize, l: [usize; 3]| bricks[f].point(b, l);
+    let density = layout.fill(|f, b, l| point(f, b, l).map_or(0, |v| density_texel(fields[f].density.raw[v])));
+    let has = |sh: bool| {
+        fields
+            .iter()
+            .any(|f| matches!((&f.appearance, sh), (Appearance::Sh2(_), true) | (Appearance::Rgb(_), false)))
+    };
+    let rgb = if has(false) {
+        layout.fill(|f, b, l| match (&fields[f].appearance, point(f, b, l)) {
+            (Appearance::Rgb(g), Some(v)) => rgb_texel(g, v),
+            _ => 0,
         })
-        .collect();
-    let d = fields.iter().map(|f| f.2[2]).sum::<usize>().max(1);
-    ensure!(
-        w <= max_side && h <= max_side && d <= max_side,
-        "the fields need a {w}x{h}x{d} texture, more than this GPU's 3D textures hold ({max_side} per side)"
-    );
-    let mut density = vec![0.0; w * h * d];
-    let mut texels = vec![0; w * h * d];
-    for ((dens, rgb, r), &first) in fields.iter().zip(&z0) {
-        // One row of the field (x fastest) at a time.
-        for z in 0..r[2] {
-            for y in 0..r[1] {
-                let src = r[0] * (y + r[1] * z);
-                let dst = w * (y + h * (first + z));
-                density[dst..dst + r[0]].copy_from_slice(&dens[src..src + r[0]]);
-                if !rgb.is_empty() {
-                    texels[dst..dst + r[0]].copy_from_slice(&rgb[src..src + r[0]]);
-                }
-            }
-        }
-    }
-    Ok(Atlas {
-        size: [w, h, d],
+    } else {
+        Vec::new()
+    };
+    let sh = if has(true) {
+        (0..SH_TEXTURES)
+            .map(|t| {
+                layout.fill(|f, b, l| match (&fields[f].appearance, point(f, b, l)) {
+                    (Appearance::Sh2(g), Some(v)) => sh_texel(g, v, t),
+                    _ => [0; 4],
+                })
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    PoolTextures {
+        size: layout.size,
         density,
-        rgb: texels,
-        z0,
-    })
+        rgb,
+        sh,
+    }
 }
 
-/// Concatenates packed fields; returns the field infos with absolute
-/// offsets (the atlas slice is set by the caller, from [`atlas`]).
-pub fn concat_fields(fields: &[&PackedField]) -> (Vec<GpuField>, Vec<f32>, Vec<u32>, Vec<u32>) {
-    let mut infos = Vec::new();
-    let (mut density, mut colors, mut aux) = (Vec::new(), Vec::new(), Vec::new());
-    for p in fields {
+/// Concatenates the fields' skip grids and the plan's indirection grids
+/// into `aux`; returns the field records with absolute offsets and the
+/// plan's level of detail.
+pub fn concat_fields(fields: &[&PackedField], plan: &PoolPlan) -> Result<(Vec<GpuField>, Vec<u32>)> {
+    let mut infos = Vec::with_capacity(fields.len());
+    let mut aux = Vec::new();
+    for ((p, bricks), &first) in fields.iter().zip(&plan.fields).zip(&plan.layout.first) {
         let mut info = p.info;
-        let a = aux.len() as u32;
-        let c = colors.len() as u32;
-        info.offsets = [density.len() as u32, c, c + p.info.offsets[2], 0];
-        info.skip[3] = a;
-        density.extend_from_slice(&p.density);
-        colors.extend_from_slice(&p.colors);
+        info.skip[3] = aux.len() as u32;
         aux.extend_from_slice(&p.aux);
+        info.offsets = [aux.len() as u32, first as u32, 0, 0];
+        aux.extend_from_slice(&bricks.indirection);
+        // The last point shown and the points per axis at this level.
+        let lo = Vec3::from_slice(&info.bounds_min[..3]);
+        let hi = Vec3::from_slice(&info.bounds_max[..3]);
+        let full = bricks.full_res.map(|n| (n - 1) as f32);
+        let shown = bricks.res.map(|n| ((n - 1) * bricks.stride) as f32);
+        let last = lo + (hi - lo) * Vec3::from(shown) / Vec3::from(full);
+        info.bounds_max = v4(last, info.bounds_max[3]);
+        info.res = [bricks.res[0] as u32, bricks.res[1] as u32, bricks.res[2] as u32, info.res[3]];
         infos.push(info);
     }
-    (infos, density, colors, aux)
+    ensure!(aux.len() < u32::MAX as usize, "the fields are too large for the GPU view");
+    Ok((infos, aux))
 }
 
 /// The local box outside which a keep-masked layer is empty: the mask's
@@ -465,37 +398,53 @@ pub fn distinct_fields(scene: &Scene) -> Vec<Arc<Field>> {
     out
 }
 
-/// Distinct mask bitmaps of a scene, in order of first use.
-pub fn distinct_bitmaps(scene: &Scene, overlay: &[Overlay]) -> Vec<Arc<Bitmap>> {
+/// A mask bitmap over a field's grid, as uploaded: the same bitmap over
+/// two fields is two uploads (its words follow each field's bricks).
+#[derive(Clone, Debug)]
+pub struct MaskRef {
+    pub bits: Arc<Bitmap>,
+    pub field: Arc<Field>,
+}
+
+impl MaskRef {
+    fn is(&self, bits: &Arc<Bitmap>, field: &Arc<Field>) -> bool {
+        Arc::ptr_eq(&self.bits, bits) && Arc::ptr_eq(&self.field, field)
+    }
+}
+
+/// Distinct (mask, field) pairs of a scene (layer masks, then highlight
+/// masks), in order of first use.
+pub fn distinct_bitmaps(scene: &Scene, overlay: &[Overlay]) -> Vec<MaskRef> {
     let masks = scene.layers.iter().filter_map(|l| match &l.mask {
-        Mask::Keep(b) | Mask::Remove(b) => Some(b),
+        Mask::Keep(b) | Mask::Remove(b) => Some((b, &l.field)),
         Mask::All => None,
     });
-    let highlights = overlay.iter().filter_map(|o| o.highlight_mask.as_ref());
-    let mut out: Vec<Arc<Bitmap>> = Vec::new();
-    for b in masks.chain(highlights) {
-        if !out.iter().any(|x| Arc::ptr_eq(x, b)) {
-            out.push(b.clone());
+    let highlights = overlay
+        .iter()
+        .zip(&scene.layers)
+        .filter_map(|(o, l)| o.highlight_mask.as_ref().map(|b| (b, &l.field)));
+    let mut out: Vec<MaskRef> = Vec::new();
+    for (b, f) in masks.chain(highlights) {
+        if !out.iter().any(|m| m.is(b, f)) {
+            out.push(MaskRef {
+                bits: b.clone(),
+                field: f.clone(),
+            });
         }
     }
     out
 }
 
-/// Word offsets (u32 units) of each bitmap in the concatenated buffer, and
-/// the total word count.
-pub fn bitmap_offsets(bitmaps: &[Arc<Bitmap>]) -> (Vec<u32>, usize) {
-    let mut offs = Vec::with_capacity(bitmaps.len());
+/// Word offsets (u32 units) of each mask in the concatenated buffer, and
+/// the total word count; `words(k)` is mask k's word count.
+pub fn bitmap_offsets(count: usize, words: impl Fn(usize) -> usize) -> (Vec<u32>, usize) {
+    let mut offs = Vec::with_capacity(count);
     let mut total = 0usize;
-    for b in bitmaps {
+    for k in 0..count {
         offs.push(total as u32);
-        total += b.words().len() * 2;
+        total += words(k);
     }
     (offs, total)
-}
-
-/// The bitmap's words as little-endian u32 pairs.
-pub fn bitmap_u32(b: &Bitmap) -> Vec<u32> {
-    b.words().iter().flat_map(|&w| [w as u32, (w >> 32) as u32]).collect()
 }
 
 /// Editor overlay per layer.
@@ -521,12 +470,12 @@ pub struct Overlay {
 pub fn pack_layers(
     scene: &Scene,
     fields: &[Arc<Field>],
-    bitmaps: &[Arc<Bitmap>],
+    bitmaps: &[MaskRef],
     bitmap_offs: &[u32],
     overlay: &[Overlay],
 ) -> Result<Vec<GpuLayer>> {
     // Word offset of a layer's bitmap (`what`: "mask", "highlight mask").
-    let offset_of = |i: usize, what: &str, bits: &Arc<Bitmap>, field: &Field| -> Result<u32> {
+    let offset_of = |i: usize, what: &str, bits: &Arc<Bitmap>, field: &Arc<Field>| -> Result<u32> {
         ensure!(
             bits.res() == field.res(),
             "layer {i}: {what} resolution {:?} differs from the field's {:?}",
@@ -535,7 +484,7 @@ pub fn pack_layers(
         );
         let k = bitmaps
             .iter()
-            .position(|x| Arc::ptr_eq(x, bits))
+            .position(|m| m.is(bits, field))
             .ok_or_else(|| crate::Error::invalid(format!("layer {i}: its {what} was not uploaded")))?;
         Ok(bitmap_offs[k])
     };
@@ -602,7 +551,8 @@ pub fn pack_layers(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::{Aabb, FieldBuilder, GridGeom, RankIndex};
+    use crate::app::gpu::pool;
+    use crate::field::{Aabb, FieldBuilder, RankIndex};
     use crate::render::Layer;
     use half::f16;
 
@@ -615,76 +565,22 @@ mod tests {
     }
 
     #[test]
-    fn sh_coefficients_pack_as_f16_pairs_behind_a_slot_table() {
+    fn sh_texels_hold_the_coefficients_and_a_stored_flag() {
         let f = ball();
         let g = f.geom();
         let bits = Bitmap::from_fn(g.res, |i| i % 5 == 0);
         let ix = Arc::new(RankIndex::new(bits.clone()));
         let data: Vec<f16> = (0..ix.count() * 27).map(|k| f16::from_f32(k as f32 * 0.25)).collect();
-        let mut f2 = f.clone();
-        f2.appearance = Appearance::Sh2(ChannelGrid::sparse(g, 27, ix.clone(), data.clone()));
-        let p = pack_field(&f2).unwrap();
-        assert_eq!(p.info.res[3], COLOR_SH | COLOR_SPARSE);
-        let start = p.info.offsets[2] as usize;
-        // 17 points = 5 bricks per axis.
-        assert_eq!(start, 125 * 64);
-        // The shader's lookup: table entry = slot + 1, then half k of the slot.
+        let sh = ChannelGrid::sparse(g, 27, ix.clone(), data.clone());
         for v in [0, 5, 7, 100, g.len() - 1] {
-            let slot = (p.colors[at(g, v)] as usize).checked_sub(1);
-            assert_eq!(slot, ix.slot(v), "voxel {v}");
-            let Some(s) = slot else { continue };
-            for k in [0, 8, 9, 26] {
-                let w = p.colors[start + s * SH_WORDS + k / 2];
-                let h = if k % 2 == 0 { w & 0xffff } else { w >> 16 };
-                assert_eq!(h as u16, data[s * 27 + k].to_bits());
-            }
-        }
-        // Offsets stay right after concatenation behind another field.
-        let rgb = pack_field(&f).unwrap();
-        let (infos, _, colors, _) = concat_fields(&[&rgb, &p]);
-        assert_eq!(infos[1].offsets[1] as usize, rgb.colors.len());
-        assert_eq!(infos[1].offsets[2] as usize, rgb.colors.len() + start);
-        assert_eq!(colors.len(), rgb.colors.len() + p.colors.len());
-    }
-
-    /// Bricked index of linear grid point v.
-    fn at(g: GridGeom, v: usize) -> usize {
-        let r = g.res;
-        bricked_index(r, v % r[0], v / r[0] % r[1], v / (r[0] * r[1]))
-    }
-
-    #[test]
-    fn bricked_order_is_a_bijection_with_the_shaders_neighbour_steps() {
-        let res = [9, 6, 5];
-        let n = res.iter().product::<usize>();
-        let g = GridGeom::new(Aabb::new(Vec3::ZERO, Vec3::ONE), res);
-        let b = brick_dims(res);
-        assert_eq!(b, [3, 2, 2]);
-        let mut seen = vec![false; b.iter().product::<usize>() * 64];
-        for v in 0..n {
-            let i = at(g, v);
-            assert!(!seen[i], "two points at {i}");
-            seen[i] = true;
-        }
-        // `bricked` puts value(v) at v's bricked index, `fill` elsewhere.
-        let arr = bricked(res, usize::MAX, |v| v);
-        assert_eq!(arr.len(), seen.len());
-        for (i, &v) in arr.iter().enumerate() {
-            assert_eq!(v != usize::MAX, seen[i]);
-            if v != usize::MAX {
-                assert_eq!(at(g, v), i);
-            }
-        }
-        // raymarch.wgsl `cell_of`: the +x/+y/+z neighbour is 1/4/16 on,
-        // or 61, 64·bx − 12, 64·bx·by − 48 on across a brick face.
-        for z in 0..res[2] - 1 {
-            for y in 0..res[1] - 1 {
-                for x in 0..res[0] - 1 {
-                    let i = bricked_index(res, x, y, z);
-                    let step = |w: usize, inside: usize, across: usize| if w % 4 == 3 { across } else { inside };
-                    assert_eq!(bricked_index(res, x + 1, y, z) - i, step(x, 1, 61));
-                    assert_eq!(bricked_index(res, x, y + 1, z) - i, step(y, 4, 64 * b[0] - 12));
-                    assert_eq!(bricked_index(res, x, y, z + 1) - i, step(z, 16, 64 * b[0] * b[1] - 48));
+            let texels: Vec<u16> = (0..SH_TEXTURES).flat_map(|t| sh_texel(&sh, v, t)).collect();
+            match ix.slot(v) {
+                None => assert!(texels.iter().all(|&h| h == 0), "voxel {v}"),
+                Some(s) => {
+                    for k in 0..27 {
+                        assert_eq!(texels[k], data[s * 27 + k].to_bits(), "voxel {v} coefficient {k}");
+                    }
+                    assert_eq!(f16::from_bits(texels[27]), f16::ONE);
                 }
             }
         }
@@ -730,85 +626,81 @@ mod tests {
     }
 
     #[test]
-    fn colours_cover_every_grid_point_with_a_stored_flag() {
+    fn pool_texels_hold_their_grid_points_values() {
         let f = ball();
-        let p = pack_field(&f).unwrap();
-        assert_eq!(p.rgb.len(), 17 * 17 * 17);
-        assert!(p.colors.is_empty());
-        // 17 points = 5 bricks of 4 per axis.
-        assert_eq!(p.density.len(), 125 * 64);
-        let g = GridGeom::new(f.bounds(), [17; 3]);
-        let i = g.index(16, 0, 8);
-        let want = g.point_of(i) * 0.5 + 0.5;
-        let r = (p.rgb[i] & 1023) as f32 / 1023.0;
-        assert!((r - want.x).abs() < 1e-3);
-        assert_eq!(p.rgb[i] >> 30, 3);
-        assert_eq!(p.density[at(g, i)], f.density.raw[i]);
-        assert_eq!(p.info.res, [17, 17, 17, 0]);
-        // Sparse appearance: unstored points carry flag 0.
+        let g = f.geom();
+        // Sparse RGB: stored points have alpha 1, the others are 0 entirely.
         let bits = Bitmap::from_fn(g.res, |i| i % 7 == 0);
         let ix = Arc::new(RankIndex::new(bits.clone()));
         let data: Vec<f16> = bits.ones().flat_map(|_| [f16::ONE, f16::ZERO, f16::ONE]).collect();
-        let mut f2 = f.clone();
-        f2.appearance = Appearance::Rgb(ChannelGrid::sparse(g, 3, ix, data));
-        let p = pack_field(&f2).unwrap();
-        assert_eq!(p.info.res[3], 1);
-        for v in 0..g.len() {
-            // Stored points have alpha 1, the others are 0 entirely.
-            assert_eq!(p.rgb[v] >> 30 == 3, v % 7 == 0, "voxel {v}");
-            assert_eq!(p.rgb[v] == 0, v % 7 != 0, "voxel {v}");
+        let mut sparse = f.clone();
+        sparse.appearance = Appearance::Rgb(ChannelGrid::sparse(g, 3, ix, data));
+        let fields = [&f, &sparse];
+        let plan = pool::plan(&[&f.density, &sparse.density], pool_texel_bytes(&fields), 2048, 1 << 30).unwrap();
+        assert_eq!(plan.stride, 1);
+        let tex = pool_textures(&fields, &plan);
+        assert!(tex.sh.is_empty());
+        let layout = &plan.layout;
+        let [px, py, _] = layout.bricks;
+        let mut checked = 0;
+        for (slot, &(fi, b)) in layout.slots.iter().enumerate() {
+            let base = [slot % px, slot / px % py, slot / (px * py)].map(|c| c * pool::BRICK);
+            for t in 0..pool::BRICK_TEXELS {
+                let l = pool::texel_coords(t);
+                let Some(v) = plan.fields[fi as usize].point(b as usize, l) else { continue };
+                let [x, y, z] = [0, 1, 2].map(|a| base[a] + l[a]);
+                let at = x + layout.size[0] * (y + layout.size[1] * z);
+                let field = fields[fi as usize];
+                assert_eq!(tex.density[at], density_texel(field.density.raw[v]));
+                let Appearance::Rgb(rgb) = &field.appearance else { unreachable!() };
+                assert_eq!(tex.rgb[at], rgb_texel(rgb, v));
+                if fi == 1 {
+                    assert_eq!(tex.rgb[at] != 0, v % 7 == 0, "voxel {v}");
+                }
+                checked += 1;
+            }
         }
-        assert_eq!(p.rgb[0], rgb10a2([1.0, 0.0, 1.0]));
+        assert!(checked > 0);
+        let want = g.point_of(g.index(8, 8, 8)) * 0.5 + 0.5;
+        let got = rgb_texel(match &f.appearance {
+            Appearance::Rgb(g) => g,
+            _ => unreachable!(),
+        }, g.index(8, 8, 8));
+        assert!(((got & 1023) as f32 / 1023.0 - want.x).abs() < 1e-3);
+        assert_eq!(got >> 30, 3);
+        // Raw densities beyond f16 stay finite.
+        assert_eq!(f16::from_bits(density_texel(-1e9)), f16::MIN);
     }
 
     #[test]
-    fn atlas_stacks_fields_along_z_and_refuses_oversized_ones() {
-        let small: Vec<f32> = (0..2 * 3 * 2).map(|v| v as f32).collect();
-        let big: Vec<f32> = (0..4 * 2 * 3).map(|v| 100.0 + v as f32).collect();
-        let rgb: Vec<u32> = (0..4 * 2 * 3).map(|v| v as u32 + 1).collect();
-        let a = atlas(&[(&small, &[], [2, 3, 2]), (&big, &rgb, [4, 2, 3])], 16).unwrap();
-        assert_eq!(a.size, [4, 3, 5]);
-        assert_eq!(a.z0, vec![0, 2]);
-        let texel = |x: usize, y: usize, z: usize| x + 4 * (y + 3 * z);
-        // Field 0's point (1, 2, 1) and field 1's point (3, 1, 2).
-        assert_eq!(a.density[texel(1, 2, 1)], (1 + 2 * (2 + 3)) as f32);
-        assert_eq!(a.rgb[texel(1, 2, 1)], 0);
-        let v = 3 + 4 * (1 + 2 * 2);
-        assert_eq!(a.density[texel(3, 1, 2 + 2)], big[v]);
-        assert_eq!(a.rgb[texel(3, 1, 2 + 2)], rgb[v]);
-        // Padding beside the narrower field stays empty.
-        assert_eq!(a.density[texel(3, 0, 0)], 0.0);
-        let e = atlas(&[(&big, &rgb, [4, 2, 3]), (&big, &rgb, [4, 2, 3])], 5).unwrap_err();
-        assert!(e.to_string().contains("4x2x6"), "{e}");
-        // No fields: one texel, to bind something.
-        assert_eq!(atlas(&[], 16).unwrap().size, [1, 1, 1]);
-    }
-
-    #[test]
-    fn concatenation_offsets_fields() {
+    fn concatenation_offsets_fields_and_sets_the_level_of_detail() {
         let f = ball();
         let p = pack_field(&f).unwrap();
-        let (infos, density, colors, aux) = concat_fields(&[&p, &p]);
-        assert_eq!(density.len(), 2 * p.density.len());
-        assert_eq!(infos[1].offsets[0] as usize, p.density.len());
-        assert_eq!(infos[1].offsets[1] as usize, p.colors.len());
-        assert_eq!(infos[1].skip[3] as usize, p.aux.len());
-        assert_eq!(colors.len(), 2 * p.colors.len());
-        assert_eq!(aux.len(), 2 * p.aux.len());
-    }
-
-    #[test]
-    fn bitmap_words_split_little_endian() {
-        let mut b = Bitmap::new([8, 8, 2]);
-        for i in [0usize, 31, 32, 63, 64, 127] {
-            b.set(i, true);
-        }
-        let w = bitmap_u32(&b);
-        assert_eq!(w.len(), 4);
-        for i in 0..128usize {
-            let bit = w[i >> 5] >> (i & 31) & 1 == 1;
-            assert_eq!(bit, b.get(i), "bit {i}");
-        }
+        let plan = pool::plan(&[&f.density, &f.density], 2, 2048, 1 << 30).unwrap();
+        let (infos, aux) = concat_fields(&[&p, &p], &plan).unwrap();
+        let ind = plan.fields[0].indirection.len();
+        assert_eq!(aux.len(), 2 * (p.aux.len() + ind));
+        assert_eq!(infos[0].skip[3], 0);
+        assert_eq!(infos[0].offsets[0] as usize, p.aux.len());
+        assert_eq!(infos[1].skip[3] as usize, p.aux.len() + ind);
+        assert_eq!(infos[1].offsets[1] as usize, plan.fields[0].count());
+        assert_eq!(&aux[infos[1].offsets[0] as usize..], &plan.fields[1].indirection[..]);
+        assert_eq!(infos[0].res, [17, 17, 17, 0]);
+        assert_eq!(infos[0].bounds_max[..3], [1.0, 1.0, 1.0]);
+        // Every 2nd point of 17 is 9 points, up to the last one; every
+        // 4th of 17 is 5 (0, 4, .., 16); of 16 points (15 cells), every
+        // 2nd is 8 points, ending one spacing before the box's end.
+        let mut coarse = plan.clone();
+        coarse.fields = vec![pool::FieldBricks::build(&f.density, 2); 2];
+        let (infos, _) = concat_fields(&[&p, &p], &coarse).unwrap();
+        assert_eq!(infos[0].res, [9, 9, 9, 0]);
+        assert_eq!(infos[0].bounds_max[..3], [1.0, 1.0, 1.0]);
+        let odd = FieldBuilder::new(Aabb::new(Vec3::ZERO, Vec3::splat(15.0)), [16; 3]).build(|_| 1.0, |_| Vec3::ONE, None);
+        let po = pack_field(&odd).unwrap();
+        coarse.fields = vec![pool::FieldBricks::build(&odd.density, 2)];
+        let (infos, _) = concat_fields(&[&po], &coarse).unwrap();
+        assert_eq!(infos[0].res, [8, 8, 8, 0]);
+        assert_eq!(infos[0].bounds_max[..3], [14.0, 14.0, 14.0]);
     }
 
     #[test]
@@ -831,9 +723,9 @@ mod tests {
         assert_eq!(fields.len(), 1);
         let bms = distinct_bitmaps(&scene, &[]);
         assert_eq!(bms.len(), 2);
-        let (offs, total) = bitmap_offsets(&bms);
-        assert_eq!(offs, vec![0, (bits.words().len() * 2) as u32]);
-        assert_eq!(total, offs[1] as usize * 2);
+        let (offs, total) = bitmap_offsets(bms.len(), |k| 16 * (k + 1));
+        assert_eq!(offs, vec![0, 16]);
+        assert_eq!(total, 48);
         let layers = pack_layers(&scene, &fields, &bms, &offs, &[]).unwrap();
         assert_eq!(layers.len(), 2);
         assert_eq!(layers[0].info[..3], [0, MASK_REMOVE, 0]);

@@ -207,6 +207,10 @@ fn gpu_view(view: &ExtractedView, cam: &RayMarchCamera, cache: &GpuSceneCache, s
             let s = a.size.map(|n| 1.0 / n as f32);
             [s[0], s[1], s[2], 0.0]
         }),
+        pool: cache.atlas.as_ref().map_or([1, 1, 1, 0], |a| {
+            let b = a.bricks.map(|n| n as u32);
+            [b[0], b[1], b[2], 0]
+        }),
     }
 }
 
@@ -223,17 +227,16 @@ fn march_bind_group(
         contents: bytemuck::bytes_of(gv),
         usage: BufferUsages::UNIFORM,
     });
-    let (Some(layers), Some(fields), Some(aux), Some(bitmaps), Some(density), Some(colors)) = (
+    let (Some(layers), Some(fields), Some(aux), Some(bitmaps)) = (
         &cache.layer_buffer,
         &cache.field_buffer,
         &cache.aux_buffer,
         &cache.bitmap_buffer,
-        &cache.density_buffer,
-        &cache.color_buffer,
     ) else {
         return None;
     };
     let atlas = cache.atlas.as_ref()?;
+    let sh = &atlas.sh;
     Some(device.create_bind_group(
         "isrf_raymarch_bind_group",
         &pipeline_cache.get_bind_group_layout(&pipeline.layout),
@@ -243,10 +246,15 @@ fn march_bind_group(
             fields.as_entire_binding(),
             aux.as_entire_binding(),
             bitmaps.as_entire_binding(),
-            density.as_entire_binding(),
-            colors.as_entire_binding(),
             &atlas.density,
             &atlas.rgb,
+            &sh[0],
+            &sh[1],
+            &sh[2],
+            &sh[3],
+            &sh[4],
+            &sh[5],
+            &sh[6],
             &atlas.sampler,
         )),
     ))
