@@ -287,11 +287,9 @@ fn bit(offset: u32, idx: u32) -> f32 {
     return f32((w >> (idx & 31u)) & 1u);
 }
 
-// One corner of `mask_factor`: (w·σ·m, w·σ, w·m).
-// `words`: the brick's mask words, `t`: the corner's texel index in the
-// brick (its bit), `texel`: its pool texel (its density).
-fn mask_tap(f: FieldInfo, words: u32, t: u32, texel: vec3<u32>, w: f32) -> vec3<f32> {
-    let m = bit(words, t);
+// One corner of `mask_factor`: (w·σ·m, w·σ, w·m) for the corner's bit
+// `m` and pool texel `texel` (its density).
+fn mask_tap(f: FieldInfo, m: f32, texel: vec3<u32>, w: f32) -> vec3<f32> {
     let ws = w * activate(f, textureLoad(density_tex, vec3<i32>(texel), 0).x);
     return vec3<f32>(ws * m, ws, w * m);
 }
@@ -301,25 +299,40 @@ fn mask_tap(f: FieldInfo, words: u32, t: u32, texel: vec3<u32>, w: f32) -> vec3<
 // b = Σ w σ m / Σ w σ over the 8 corners with σ activated
 // (render::bitmap_fraction), so that a removal leaves no half-density
 // shell around the object. Without density at any corner, b falls back to
-// the plain interpolation of the bits.
+// the plain interpolation of the bits. Where the 8 bits agree, b is that
+// bit exactly and the densities are not read: only cells on the mask's
+// boundary pay for 8 density loads and activations (on lavapipe that
+// made a moved object's frames about 2x faster).
 fn bitmap_fraction(words: u32, f: FieldInfo, c: Cell) -> f32 {
-    let a = c.frac;
-    let g = vec3<f32>(1.0) - a;
     let o = words + c.slot * BRICK_WORDS;
     let l = c.local;
+    // +1 texel is +1, +BRICK or +BRICK² in the brick's bit order.
+    let m0 = bit(o, l);
+    let m1 = bit(o, l + 1u);
+    let m2 = bit(o, l + 8u);
+    let m3 = bit(o, l + 9u);
+    let m4 = bit(o, l + 64u);
+    let m5 = bit(o, l + 65u);
+    let m6 = bit(o, l + 72u);
+    let m7 = bit(o, l + 73u);
+    let sum = m0 + m1 + m2 + m3 + m4 + m5 + m6 + m7;
+    if sum == 0.0 || sum == 8.0 {
+        return m0;
+    }
+    let a = c.frac;
+    let g = vec3<f32>(1.0) - a;
     let t = c.texel;
     let x = vec3<u32>(1u, 0u, 0u);
     let y = vec3<u32>(0u, 1u, 0u);
     let z = vec3<u32>(0u, 0u, 1u);
-    // Corners written out (lavapipe is much faster so); +1 texel is +1,
-    // +BRICK or +BRICK² in the brick's bit order.
-    let s = mask_tap(f, o, l, t, g.x * g.y * g.z) + mask_tap(f, o, l + 1u, t + x, a.x * g.y * g.z)
-        + mask_tap(f, o, l + 8u, t + y, g.x * a.y * g.z)
-        + mask_tap(f, o, l + 9u, t + x + y, a.x * a.y * g.z)
-        + mask_tap(f, o, l + 64u, t + z, g.x * g.y * a.z)
-        + mask_tap(f, o, l + 65u, t + z + x, a.x * g.y * a.z)
-        + mask_tap(f, o, l + 72u, t + z + y, g.x * a.y * a.z)
-        + mask_tap(f, o, l + 73u, t + z + y + x, a.x * a.y * a.z);
+    // Corners written out (lavapipe is much faster so).
+    let s = mask_tap(f, m0, t, g.x * g.y * g.z) + mask_tap(f, m1, t + x, a.x * g.y * g.z)
+        + mask_tap(f, m2, t + y, g.x * a.y * g.z)
+        + mask_tap(f, m3, t + x + y, a.x * a.y * g.z)
+        + mask_tap(f, m4, t + z, g.x * g.y * a.z)
+        + mask_tap(f, m5, t + z + x, a.x * g.y * a.z)
+        + mask_tap(f, m6, t + z + y, g.x * a.y * a.z)
+        + mask_tap(f, m7, t + z + y + x, a.x * a.y * a.z);
     if s.y > 0.0 {
         return s.x / s.y;
     }

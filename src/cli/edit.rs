@@ -228,7 +228,8 @@ fn bench_field(a: &BenchArgs, path: &std::path::Path) -> Result<()> {
     let views: Vec<Camera> = [(-0.5f32, 0.3f32), (0.5, 0.3), (-0.2, -0.2), (0.2, 0.6)]
         .iter()
         .map(|&(yaw, pitch)| {
-            let dir = glam::Vec3::new(yaw.sin() * pitch.cos(), pitch.sin(), yaw.cos() * pitch.cos());
+            // From the -z side: the front of a forward-facing (NDC) field.
+            let dir = glam::Vec3::new(yaw.sin() * pitch.cos(), pitch.sin(), -yaw.cos() * pitch.cos());
             Camera::look_at(k, centre + dir * dist, centre, glam::Vec3::Y)
         })
         .collect();
