@@ -86,12 +86,22 @@ pub struct DemoScene {
 
 /// Builds scene `name` at `res`³ grid points, deterministic for `seed`.
 pub fn build(name: &str, res: usize, seed: u64) -> Result<DemoScene> {
-    crate::ensure!(
-        (MIN_RES..=MAX_RES).contains(&res),
-        "demo resolution {res} is out of range ({MIN_RES}..={MAX_RES})"
-    );
-    let geom = GridGeom::new(bounds(), [res; 3]);
-    let voxel = geom.spacing().x;
+    build_grid(name, [res; 3], seed)
+}
+
+/// Builds scene `name` on a grid of `res` points per axis (over the same
+/// box: other than cubic grids have voxels longer along some axes, which
+/// makes large flat grids such as 512 × 512 × 128 for memory tests).
+pub fn build_grid(name: &str, res: [usize; 3], seed: u64) -> Result<DemoScene> {
+    for r in res {
+        crate::ensure!(
+            (MIN_RES..=MAX_RES).contains(&r),
+            "demo resolution {r} is out of range ({MIN_RES}..={MAX_RES})"
+        );
+    }
+    let geom = GridGeom::new(bounds(), res);
+    // Primitives are made at the finest voxel size.
+    let voxel = geom.spacing().min_element();
     let recipe = match name {
         "tabletop" => tabletop::recipe(seed, voxel),
         "shelf" => shelf::recipe(seed, voxel),

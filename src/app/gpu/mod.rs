@@ -664,13 +664,15 @@ fn upload_fields(
     Ok(())
 }
 
-/// A mask's words in its field's brick order (empty before any plan).
+/// The uploaded bricks of a mask's field (none before any plan).
+fn mask_bricks<'a>(cache: &'a GpuSceneCache, m: &MaskRef) -> Option<&'a pool::FieldBricks> {
+    let i = cache.fields.iter().position(|s| Arc::ptr_eq(&s.field, &m.field))?;
+    cache.plan.as_ref().map(|plan| &plan.fields[i])
+}
+
+/// A mask's words in its field's brick order.
 fn mask_words(cache: &GpuSceneCache, m: &MaskRef) -> Vec<u32> {
-    let slot = cache.fields.iter().position(|s| Arc::ptr_eq(&s.field, &m.field));
-    match (&cache.plan, slot) {
-        (Some(plan), Some(i)) => pool::brick_bits(&plan.fields[i], &m.bits),
-        _ => Vec::new(),
-    }
+    mask_bricks(cache, m).map_or_else(Vec::new, |b| pool::brick_bits(b, &m.bits))
 }
 
 /// Uploads mask bitmaps: only those whose contents changed when the layout
@@ -730,13 +732,7 @@ fn update_bitmaps(
 fn mask_word_counts(cache: &GpuSceneCache, bitmaps: &[MaskRef]) -> Vec<usize> {
     bitmaps
         .iter()
-        .map(|m| {
-            let slot = cache.fields.iter().position(|s| Arc::ptr_eq(&s.field, &m.field));
-            match (&cache.plan, slot) {
-                (Some(plan), Some(i)) => plan.fields[i].count() * pool::BRICK_WORDS,
-                _ => 0,
-            }
-        })
+        .map(|m| mask_bricks(cache, m).map_or(0, |b| b.count() * pool::BRICK_WORDS))
         .collect()
 }
 
