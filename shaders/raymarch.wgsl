@@ -65,7 +65,8 @@ struct FieldInfo {
     // points per axis at the level of detail shown, colour kind
     // (COLOR_SPARSE | COLOR_SH bits)
     res: vec4<u32>,
-    // indirection grid (word in aux), first pool slot, 0, 0
+    // brick slot grid (word in aux), first pool slot, first z slice in
+    // `indirection`, 0
     offsets: vec4<u32>,
     // skip dims xyz, skip offset
     skip: vec4<u32>,
@@ -93,6 +94,12 @@ struct FieldInfo {
 @group(0) @binding(12) var sh5: texture_3d<f32>;
 @group(0) @binding(13) var sh6: texture_3d<f32>;
 @group(0) @binding(14) var atlas_sampler: sampler;
+// Every field's brick grid (pack.rs `Indirection`): per brick its position
+// in the pool, 0 when empty.
+@group(0) @binding(15) var indirection: texture_3d<u32>;
+// Activated density per pool texel, f16 pairs (pack.rs
+// `PoolTextures::sigma`): what masks weight each corner's bit by.
+@group(0) @binding(16) var<storage, read> pool_sigma: array<u32>;
 
 // The pipeline is specialised on a bound of the layer count (1, 2, 4 or
 // src/app/gpu/pack.rs MAX_LAYERS): the per-layer loops run a constant
@@ -121,7 +128,8 @@ const BRICK: u32 = 8u;
 const BRICK_WORDS: u32 = 16u;
 
 // Trilinear cell of a local point: the pool texel of its base corner,
-// the field-local slot of its brick (mask words) and the corner's texel
+// where its brick's field-local slot + 1 is in `aux` (mask words; read only
+// by masks) and the corner's texel
 // index in the brick (mask bits), fractions, the point's pool texture
 // coordinates; `inside` false outside the grid (geom.rs `corners`) or in
 // an empty brick.
@@ -169,16 +177,17 @@ fn cell_of(f: FieldInfo, p: vec3<f32>) -> Cell {
     let bricks = (f.res.xyz + vec3<u32>(BRICK_CELLS - 2u)) / BRICK_CELLS;
     let bc = b / BRICK_CELLS;
     let l = b - bc * BRICK_CELLS;
-    let entry = aux[f.offsets.x + bc.x + bricks.x * (bc.y + bricks.y * bc.z)];
+    // The brick's position in the pool (pack.rs `pool_entry`; 0: empty),
+    // from a texture: a storage load and the divisions that decode a slot
+    // number made lavapipe's march 25 % slower.
+    let entry = textureLoad(indirection, vec3<i32>(bc + vec3<u32>(0u, 0u, f.offsets.z)), 0).x;
     if entry == 0u {
         out.inside = false;
         return out;
     }
-    out.slot = entry - 1u;
-    // Pool slot -> brick position (pool.rs `PoolLayout`).
-    let s = f.offsets.y + out.slot;
-    let pool = view.pool.xyz;
-    let pb = vec3<u32>(s % pool.x, (s / pool.x) % pool.y, s / (pool.x * pool.y));
+    // The brick's field-local slot (mask words), in the field's slot grid.
+    out.slot = f.offsets.x + bc.x + bricks.x * (bc.y + bricks.y * bc.z);
+    let pb = vec3<u32>(entry & 1023u, (entry >> 10u) & 1023u, (entry >> 20u) & 1023u);
     out.texel = pb * BRICK + l;
     out.local = l.x + BRICK * (l.y + BRICK * l.z);
     // Texel centres sit at half-integer coordinates.
@@ -290,7 +299,10 @@ fn bit(offset: u32, idx: u32) -> f32 {
 // One corner of `mask_factor`: (w·σ·m, w·σ, w·m) for the corner's bit
 // `m` and pool texel `texel` (its density).
 fn mask_tap(f: FieldInfo, m: f32, texel: vec3<u32>, w: f32) -> vec3<f32> {
-    let ws = w * activate(f, textureLoad(density_tex, vec3<i32>(texel), 0).x);
+    let size = view.pool.xy * BRICK;
+    let i = texel.x + size.x * (texel.y + size.y * texel.z);
+    let pair = unpack2x16float(pool_sigma[i >> 1u]);
+    let ws = w * select(pair.x, pair.y, (i & 1u) == 1u);
     return vec3<f32>(ws * m, ws, w * m);
 }
 
@@ -304,7 +316,7 @@ fn mask_tap(f: FieldInfo, m: f32, texel: vec3<u32>, w: f32) -> vec3<f32> {
 // boundary pay for 8 density loads and activations (on lavapipe that
 // made a moved object's frames about 2x faster).
 fn bitmap_fraction(words: u32, f: FieldInfo, c: Cell) -> f32 {
-    let o = words + c.slot * BRICK_WORDS;
+    let o = words + (aux[c.slot] - 1u) * BRICK_WORDS;
     let l = c.local;
     // +1 texel is +1, +BRICK or +BRICK² in the brick's bit order.
     let m0 = bit(o, l);

@@ -271,6 +271,8 @@ fn init_pipeline(mut commands: Commands, shaders: Res<RayMarchShaders>, fullscre
                 texture_3d(TextureSampleType::Float { filterable: true }),
                 texture_3d(TextureSampleType::Float { filterable: true }),
                 sampler(SamplerBindingType::Filtering),
+                texture_3d(TextureSampleType::Uint),
+                storage(),
             ),
         ),
     );
@@ -409,6 +411,8 @@ struct GpuSceneCache {
     bitmap_buffer: Option<Buffer>,
     field_buffer: Option<Buffer>,
     aux_buffer: Option<Buffer>,
+    /// Activated densities per pool texel ([`pack::PoolTextures::sigma`]).
+    sigma_buffer: Option<Buffer>,
     /// The pool textures and their trilinear sampler.
     atlas: Option<AtlasTextures>,
     layer_buffer: Option<Buffer>,
@@ -451,6 +455,8 @@ struct AtlasTextures {
     rgb: TextureView,
     sh: Vec<TextureView>,
     sampler: Sampler,
+    /// The brick indirection texture ([`pack::Indirection`]).
+    indirection: TextureView,
     size: [usize; 3],
     /// Pool bricks per axis.
     bricks: [usize; 3],
@@ -516,8 +522,22 @@ fn pool_texture<T: bytemuck::Pod>(
 /// raw densities keep 3 significant digits, far below what the tests'
 /// GPU-vs-CPU comparison can see. SH coefficients are f16 in the fields
 /// already.
-fn upload_pool(device: &RenderDevice, queue: &RenderQueue, t: &pack::PoolTextures, bricks: [usize; 3]) -> AtlasTextures {
+fn upload_pool(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    t: &pack::PoolTextures,
+    ind: &pack::Indirection,
+    bricks: [usize; 3],
+) -> AtlasTextures {
     let size = t.size;
+    let indirection = pool_texture(
+        device,
+        queue,
+        "isrf_pool_indirection",
+        TextureFormat::R32Uint,
+        ind.size,
+        &ind.data,
+    );
     let density = pool_texture(device, queue, "isrf_pool_density", TextureFormat::R16Float, size, &t.density);
     let rgb = pool_texture(device, queue, "isrf_pool_rgb", TextureFormat::Rgb10a2Unorm, size, &t.rgb);
     let no_sh: Vec<[u16; 4]> = Vec::new();
@@ -541,6 +561,7 @@ fn upload_pool(device: &RenderDevice, queue: &RenderQueue, t: &pack::PoolTexture
         rgb,
         sh,
         sampler,
+        indirection,
         size,
         bricks,
     }
@@ -629,14 +650,21 @@ fn upload_fields(
     cache.field_buffer = None;
     let drawn: Vec<&Field> = cache.fields.iter().map(|s| &*s.drawn).collect();
     let densities: Vec<&crate::field::DensityGrid> = drawn.iter().map(|f| &f.density).collect();
-    let max_side = device.limits().max_texture_dimension_3d as usize;
-    let plan = pool::plan(&densities, pack::pool_texel_bytes(&drawn), max_side, budget)?;
+    let limits = device.limits();
+    let max_side = limits.max_texture_dimension_3d as usize;
+    // The activated densities (two bytes a texel) are one storage binding.
+    let max_texels = 2 * limits.max_storage_buffer_binding_size.min(limits.max_buffer_size) as usize / 4;
+    let plan = pool::plan(&densities, pack::pool_texel_bytes(&drawn), max_side, budget, max_texels)?;
     let parts: Vec<&PackedField> = cache.fields.iter().map(|s| &s.packed).collect();
-    let (infos, aux) = pack::concat_fields(&parts, &plan)?;
+    let (mut infos, aux) = pack::concat_fields(&parts, &plan)?;
+    let ind = pack::indirection(&plan, max_side)?;
+    for (info, z0) in infos.iter_mut().zip(&ind.z0) {
+        info.offsets[2] = *z0 as u32;
+    }
     let textures = pack::pool_textures(&drawn, &plan);
-    cache.atlas = Some(upload_pool(device, queue, &textures, plan.layout.bricks));
-    drop(textures);
+    cache.atlas = Some(upload_pool(device, queue, &textures, &ind, plan.layout.bricks));
     cache.aux_buffer = Some(storage_buffer(device, "isrf_aux", bytemuck::cast_slice(&aux))?);
+    cache.sigma_buffer = Some(storage_buffer(device, "isrf_pool_sigma", bytemuck::cast_slice(&textures.sigma))?);
     cache.field_buffer = Some(storage_buffer(device, "isrf_fields", bytemuck::cast_slice(&infos))?);
     cache.field_infos = infos;
     cache.budget = budget;

@@ -301,9 +301,16 @@ pub struct PoolPlan {
 }
 
 /// Chooses the finest level of detail at which `fields`' occupied bricks
-/// fit both the device's 3D texture size (`max_side`) and `budget` bytes
-/// of pool textures at `bytes_per_texel`.
-pub fn plan(fields: &[&DensityGrid], bytes_per_texel: usize, max_side: usize, budget: usize) -> Result<PoolPlan> {
+/// fit the device's 3D texture size (`max_side`), `budget` bytes of pool
+/// textures at `bytes_per_texel`, and `max_texels` texels (what a
+/// per-texel storage buffer may index).
+pub fn plan(
+    fields: &[&DensityGrid],
+    bytes_per_texel: usize,
+    max_side: usize,
+    budget: usize,
+    max_texels: usize,
+) -> Result<PoolPlan> {
     let mut stride = 1;
     let mut needed = 0;
     while stride <= MAX_STRIDE {
@@ -315,7 +322,8 @@ pub fn plan(fields: &[&DensityGrid], bytes_per_texel: usize, max_side: usize, bu
             needed = bytes;
         }
         if bytes <= budget {
-            if let Some(layout) = PoolLayout::new(&refs, max_side) {
+            let layout = PoolLayout::new(&refs, max_side).filter(|l| l.texels() <= max_texels);
+            if let Some(layout) = layout {
                 let bytes = layout.texels() * bytes_per_texel;
                 return Ok(PoolPlan {
                     stride,
@@ -454,22 +462,24 @@ mod tests {
     #[test]
     fn plan_falls_back_to_coarser_detail_within_the_budget() {
         let d = corner_ball();
-        let fine = plan(&[&d], 2, 2048, 1 << 30).unwrap();
+        let fine = plan(&[&d], 2, 2048, 1 << 30, usize::MAX).unwrap();
         assert_eq!(fine.stride, 1);
         // Less than one brick of budget at full detail: nothing fits at
         // stride 1 (one brick = 1 KiB at 2 bytes a texel).
-        let e = plan(&[&d], 2, 2048, 512).unwrap_err();
+        let e = plan(&[&d], 2, 2048, 512, usize::MAX).unwrap_err();
         assert!(e.to_string().contains("does not fit"), "{e}");
         // A texture limit of 8 texels fits one brick: stride 1 has one
         // occupied brick, so it fits; with a 7-texel limit nothing does.
-        assert_eq!(plan(&[&d], 2, 8, 1 << 30).unwrap().stride, 1);
-        assert!(plan(&[&d], 2, 7, 1 << 30).is_err());
+        assert_eq!(plan(&[&d], 2, 8, 1 << 30, usize::MAX).unwrap().stride, 1);
+        assert!(plan(&[&d], 2, 7, 1 << 30, usize::MAX).is_err());
+        // Nor when one brick is more texels than a storage buffer indexes.
+        assert!(plan(&[&d], 2, 2048, 1 << 30, BRICK_TEXELS - 1).is_err());
         // Density everywhere: 45 bricks at full detail, 4 at stride 2.
         let mut solid = d.clone();
         solid.raw.fill(5.0);
         let brick_bytes = BRICK_TEXELS * 2;
-        assert_eq!(plan(&[&solid], 2, 2048, 45 * brick_bytes).unwrap().stride, 1);
-        let p = plan(&[&solid], 2, 2048, 10 * brick_bytes).unwrap();
+        assert_eq!(plan(&[&solid], 2, 2048, 45 * brick_bytes, usize::MAX).unwrap().stride, 1);
+        let p = plan(&[&solid], 2, 2048, 10 * brick_bytes, usize::MAX).unwrap();
         assert_eq!(p.stride, 2);
         assert_eq!(p.fields[0].count(), 4);
         assert!(p.bytes >= 4 * brick_bytes);

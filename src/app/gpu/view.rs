@@ -227,11 +227,12 @@ fn march_bind_group(
         contents: bytemuck::bytes_of(gv),
         usage: BufferUsages::UNIFORM,
     });
-    let (Some(layers), Some(fields), Some(aux), Some(bitmaps)) = (
+    let (Some(layers), Some(fields), Some(aux), Some(bitmaps), Some(sigma)) = (
         &cache.layer_buffer,
         &cache.field_buffer,
         &cache.aux_buffer,
         &cache.bitmap_buffer,
+        &cache.sigma_buffer,
     ) else {
         return None;
     };
@@ -256,6 +257,8 @@ fn march_bind_group(
             &sh[5],
             &sh[6],
             &atlas.sampler,
+            &atlas.indirection,
+            sigma.as_entire_binding(),
         )),
     ))
 }
