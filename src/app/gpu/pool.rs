@@ -8,10 +8,12 @@
 //! A cell's 8 corners are then always in one brick, so the GPU's trilinear
 //! filter never reads across bricks and one texture sample interpolates
 //! density (and RGB, and SH coefficients) exactly like the CPU's
-//! `geom.corners`. Per field an *indirection grid* (one u32 per brick: its
-//! pool slot + 1, 0 when empty) says where a brick sits; the pool textures
-//! hold every field's bricks side by side, slot `s` at brick position
-//! `(s mod px, s / px mod py, s / (px·py))`.
+//! `geom.corners`. Per field a *slot grid* (one u32 per brick: its
+//! field-local slot + 1, 0 when empty) numbers the occupied bricks; the
+//! pool textures hold every field's bricks side by side, pool slot `s` at
+//! brick position `(s mod px, s / px mod py, s / (px·py))`, and the shader
+//! finds a brick's position in an indirection texture
+//! (`pack::Indirection`).
 //!
 //! Empty bricks hold no density above [`EMPTY_SIGMA`] at any corner, so the
 //! density interpolated anywhere in their cells is at most that too (the
@@ -67,7 +69,8 @@ pub struct FieldBricks {
     pub res: [usize; 3],
     /// Bricks per axis.
     pub dims: [usize; 3],
-    /// Per brick (x fastest): its field-local slot + 1, 0 when empty.
+    /// The slot grid: per brick (x fastest) its field-local slot + 1, 0
+    /// when empty.
     pub indirection: Vec<u32>,
     /// Per field-local slot: the brick's linear index.
     pub bricks: Vec<u32>,
