@@ -429,7 +429,10 @@ fn big_sh_field() -> Field {
     let data: Vec<half::f16> = (0..g.len())
         .flat_map(|i| {
             let p = g.point_of(i);
-            sh_from_rgb([0.5 + 0.4 * p.x, 0.5 + 0.4 * p.y, 0.5 - 0.4 * p.z], p.x * 9.0 + p.y * 4.0)
+            sh_from_rgb(
+                [0.5 + 0.4 * p.x, 0.5 + 0.4 * p.y, 0.5 - 0.4 * p.z],
+                p.x * 9.0 + p.y * 4.0,
+            )
         })
         .collect();
     f.appearance = Appearance::Sh2(ChannelGrid::dense(g, 27, data));
@@ -504,11 +507,18 @@ fn a_scene_over_the_memory_budget_shows_a_coarser_level_of_detail() {
     );
     assert_eq!(status.stride, 2);
     assert!(status.pool_bytes <= full_bytes / 2);
-    assert!(status.detail.as_deref().is_some_and(|d| d.contains("1/2")), "{:?}", status.detail);
+    assert!(
+        status.detail.as_deref().is_some_and(|d| d.contains("1/2")),
+        "{:?}",
+        status.detail
+    );
     let p = psnr(&coarse, &full);
     eprintln!("coarse vs full detail: PSNR {p:.2} dB");
     // (Seen: 18.7 dB on lavapipe, the same scene with thicker parts.)
-    assert!((15.0..45.0).contains(&p), "the coarse image is close to, not equal to, the full one: {p:.2} dB");
+    assert!(
+        (15.0..45.0).contains(&p),
+        "the coarse image is close to, not equal to, the full one: {p:.2} dB"
+    );
     // A budget too small for any level of detail: a clear error, no panic,
     // and the renderer keeps working once the budget is back.
     r.set_memory_budget(1024);

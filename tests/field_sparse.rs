@@ -76,16 +76,24 @@ fn max_diff(a: &[f32], b: &[f32]) -> f32 {
 fn sparse_file_renders_and_segments_like_the_dense_export() {
     let m = blob_model(1);
     let dir = tempfile::tempdir().unwrap();
-    let (dense_path, sparse_path) = (dir.path().join("dense.safetensors"), dir.path().join("sparse.safetensors"));
+    let (dense_path, sparse_path) = (
+        dir.path().join("dense.safetensors"),
+        dir.path().join("sparse.safetensors"),
+    );
     m.to_field().save(&dense_path).unwrap();
     m.to_sparse_field().save(&sparse_path).unwrap();
     let dense = Field::load(&dense_path).unwrap();
     let sparse = Field::load(&sparse_path).unwrap();
     // Stored sparse: SH and features over their own indices.
     assert!(matches!(&sparse.appearance, Appearance::Sh2(g) if matches!(g.layout, Layout::Sparse(_))));
-    let Some(Features::Grid(fg)) = &sparse.features else { panic!("features") };
+    let Some(Features::Grid(fg)) = &sparse.features else {
+        panic!("features")
+    };
     assert!(matches!(fg.layout, Layout::Sparse(_)));
-    assert!(fg.slots() < fg.geom.len(), "the feature grid should not be stored whole");
+    assert!(
+        fg.slots() < fg.geom.len(),
+        "the feature grid should not be stored whole"
+    );
     let (ld, ls) = (file_len(&dense_path), file_len(&sparse_path));
     assert!(ls * 2 < ld, "sparse file {ls} bytes vs dense {ld}");
 
@@ -133,7 +141,11 @@ fn file_len(p: &Path) -> u64 {
 }
 
 fn info(path: &Path) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_isrf")).arg("info").arg(path).output().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_isrf"))
+        .arg("info")
+        .arg(path)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     String::from_utf8(out.stdout).unwrap()
 }
@@ -163,7 +175,10 @@ fn info_reports_stored_and_dense_equivalent_bytes() {
     };
     // Stored bytes are the file's data section.
     assert_eq!(number_after(&d, "stored:"), file_len(&dense_path) - header(&dense_path));
-    assert_eq!(number_after(&s, "stored:"), file_len(&sparse_path) - header(&sparse_path));
+    assert_eq!(
+        number_after(&s, "stored:"),
+        file_len(&sparse_path) - header(&sparse_path)
+    );
     // A dense file's dense equivalent is what it stores; the sparse file's
     // is the same as the dense file's.
     assert_eq!(number_after(&d, "dense equivalent:"), number_after(&d, "stored:"));
@@ -225,7 +240,11 @@ fn broken_sparse_files_are_refused_with_a_message() {
     let cases: Vec<(&str, Box<dyn Fn(&mut serde_json::Value)>)> = vec![
         (
             "feature occupied",
-            Box::new(|v| edit_header(v, |h| h["feature_occupied"] = (h["feature_occupied"].as_u64().unwrap() + 1).into())),
+            Box::new(|v| {
+                edit_header(v, |h| {
+                    h["feature_occupied"] = (h["feature_occupied"].as_u64().unwrap() + 1).into()
+                })
+            }),
         ),
         (
             "density",

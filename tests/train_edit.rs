@@ -36,7 +36,14 @@ fn a_field_isrf_train_writes_opens_in_the_gpu_view() {
     // Colour and density only (no teacher): the GPU view draws those.
     let run = Command::new(env!("CARGO_BIN_EXE_isrf"))
         .args(["train", lego.to_str().unwrap(), "--downscale", "8", "--iters", "300"])
-        .args(["--feature-iters", "0", "--eval-every", "100000", "--out", out.to_str().unwrap()])
+        .args([
+            "--feature-iters",
+            "0",
+            "--eval-every",
+            "100000",
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert!(

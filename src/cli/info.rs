@@ -74,7 +74,10 @@ pub fn run(a: Args) -> Result<()> {
     // What the file stores against the same field with every grid dense.
     let stored = io::data_section_bytes(&a.field)?;
     let dense = io::tensor_bytes(&header, true);
-    println!("  stored: {stored} bytes of tensors ({:.1} MB; file {len} bytes)", stored as f64 / 1e6);
+    println!(
+        "  stored: {stored} bytes of tensors ({:.1} MB; file {len} bytes)",
+        stored as f64 / 1e6
+    );
     println!(
         "  dense equivalent: {dense} bytes ({:.1} MB; {:.1}x the stored size)",
         dense as f64 / 1e6,

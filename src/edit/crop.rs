@@ -265,17 +265,15 @@ fn crop_sampled(g: &ChannelGrid, cb: &CropBox) -> ChannelGrid {
     let geom = GridGeom::new(cb.geom.bounds, res);
     let ch = g.channels;
     let mut data = vec![f16::ZERO; geom.len() * ch];
-    data.par_chunks_mut(ch.max(1))
-        .enumerate()
-        .for_each_init(
-            || vec![0.0f32; ch],
-            |tmp, (i, row)| {
-                g.sample(geom.point_of(i), tmp);
-                for (o, &v) in row.iter_mut().zip(tmp.iter()) {
-                    *o = f16::from_f32(v);
-                }
-            },
-        );
+    data.par_chunks_mut(ch.max(1)).enumerate().for_each_init(
+        || vec![0.0f32; ch],
+        |tmp, (i, row)| {
+            g.sample(geom.point_of(i), tmp);
+            for (o, &v) in row.iter_mut().zip(tmp.iter()) {
+                *o = f16::from_f32(v);
+            }
+        },
+    );
     ChannelGrid::dense(geom, ch, data)
 }
 

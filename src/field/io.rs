@@ -34,9 +34,9 @@ use super::{Appearance, Features, Field};
 use crate::error::{Error, Result};
 use glam::Vec3;
 use half::f16;
+use rayon::prelude::*;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use serde::{Deserialize, Serialize};
-use rayon::prelude::*;
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::io::Read;
@@ -373,8 +373,7 @@ pub fn serialize(
     meta: HashMap<String, String>,
 ) -> Result<Vec<u8>> {
     let v = views(names, tensors.iter().map(|(d, s, b)| (*d, s, &b[..])))?;
-    let bytes =
-        safetensors::serialize(v, Some(meta)).map_err(|e| Error::invalid(format!("cannot serialise: {e}")))?;
+    let bytes = safetensors::serialize(v, Some(meta)).map_err(|e| Error::invalid(format!("cannot serialise: {e}")))?;
     Ok(canonical_header(bytes))
 }
 
@@ -455,7 +454,8 @@ fn canonical_header(bytes: Vec<u8>) -> Vec<u8> {
 /// Writes a field atomically (streamed: no in-memory copy of the file).
 pub fn save(field: &Field, path: &Path) -> Result<()> {
     let (out, header) = plan(field)?;
-    let tensors: Vec<(Dtype, Vec<usize>, &[u8])> = out.tensors.iter().map(|(d, s, b)| (*d, s.clone(), &b[..])).collect();
+    let tensors: Vec<(Dtype, Vec<usize>, &[u8])> =
+        out.tensors.iter().map(|(d, s, b)| (*d, s.clone(), &b[..])).collect();
     write_tensors(path, &out.names, &tensors, field_metadata(&header))
 }
 
@@ -733,7 +733,9 @@ fn validate_header(h: &Header) -> Result<()> {
     }
     if let Some(o) = h.feature_occupied {
         let Some(FeaturesHeader::Grid(c)) = &h.features else {
-            return Err(Error::invalid("feature_occupied is set but the features are not a grid"));
+            return Err(Error::invalid(
+                "feature_occupied is set but the features are not a grid",
+            ));
         };
         crate::ensure!(
             c.layout == LayoutKind::Sparse,

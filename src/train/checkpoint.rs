@@ -238,11 +238,10 @@ pub fn load(path: &Path) -> Result<Restored> {
     // before they were hold them for every grid point.
     let slot_moments = |name: &str, stride: usize| -> Result<Moments> {
         let full_len = n * stride;
-        let len = t
-            .st
-            .tensor(&format!("m.{name}"))
-            .map(|v| v.shape().iter().product::<usize>())
-            .unwrap_or(0);
+        let len =
+            t.st.tensor(&format!("m.{name}"))
+                .map(|v| v.shape().iter().product::<usize>())
+                .unwrap_or(0);
         if len == full_len && full_len != model.slots.len() * stride {
             let all = Slots::new(geom.res, &vec![u64::MAX; n.div_ceil(64)]);
             Ok(moments(name, full_len)?.remap(&all, &model.slots, stride))

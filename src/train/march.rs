@@ -417,7 +417,9 @@ fn backward_k<const K: usize>(
                 }
             }
             for k in 0..8 {
-                let Some(v) = model.slots.slot(base + lat.off[k]) else { continue };
+                let Some(v) = model.slots.slot(base + lat.off[k]) else {
+                    continue;
+                };
                 let dst = &mut grads.sh[v * stride..(v + 1) * stride];
                 let wk = w8[k];
                 for ch in 0..3 {
@@ -460,7 +462,9 @@ fn backward_k<const K: usize>(
         let draw = dsigma * dt * smp.dsig;
         for k in 0..8 {
             // Pruned corners never train: they have no slot.
-            let Some(v) = model.slots.slot(base + lat.off[k]) else { continue };
+            let Some(v) = model.slots.slot(base + lat.off[k]) else {
+                continue;
+            };
             grads.density[v] += w8[k] * draw;
             set_bit(&mut grads.marks, v);
         }

@@ -415,7 +415,11 @@ impl Model {
             }
         };
         let features = self.features.as_ref().map(|f| {
-            let fi = Arc::new(RankIndex::new(sparse::feature_occupancy(index.bits(), &self.geom, &f.geom)));
+            let fi = Arc::new(RankIndex::new(sparse::feature_occupancy(
+                index.bits(),
+                &self.geom,
+                &f.geom,
+            )));
             let c = f.channels;
             let data = sparse::gather(&fi, c, |v, row| {
                 for (o, &x) in row.iter_mut().zip(&f.data[v * c..(v + 1) * c]) {

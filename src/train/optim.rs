@@ -157,7 +157,11 @@ pub fn adam_step(
 fn param_pieces<'a>(params: &'a mut [f32], slots: Option<&Slots>, stride: usize) -> Vec<(usize, &'a mut [f32])> {
     let span = CHUNK * stride;
     let Some(sl) = slots else {
-        return params.chunks_mut(span).enumerate().map(|(c, p)| (c * span, p)).collect();
+        return params
+            .chunks_mut(span)
+            .enumerate()
+            .map(|(c, p)| (c * span, p))
+            .collect();
     };
     let mut out = Vec::with_capacity(sl.len().div_ceil(CHUNK));
     let mut rest = params;

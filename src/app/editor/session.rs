@@ -270,11 +270,13 @@ pub fn sync_entities(
                         .filter(|t| t.exists())
                         .find_map(|t| crate::camera::CameraSet::load(&t).ok());
                     if let Some(set) = set {
-                        state.capture_cameras.extend(set.frames.into_iter().filter(|c| c.camera.ndc.is_none()).map(|c| {
-                            let mut cam = c.camera;
-                            cam.c2w = f.transform * cam.c2w;
-                            (format!("{}: {}", f.name, c.name), cam)
-                        }));
+                        state
+                            .capture_cameras
+                            .extend(set.frames.into_iter().filter(|c| c.camera.ndc.is_none()).map(|c| {
+                                let mut cam = c.camera;
+                                cam.c2w = f.transform * cam.c2w;
+                                (format!("{}: {}", f.name, c.name), cam)
+                            }));
                     }
                 }
                 commands
@@ -339,7 +341,10 @@ pub fn sync_entities(
 /// Camera files that may hold a field file's capture views, best first:
 /// `isrf train`'s `<stem>.cameras.json`, then `transforms.json` beside it.
 fn capture_camera_files(field: &std::path::Path) -> Vec<std::path::PathBuf> {
-    let name = field.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = field
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
     let mut out = vec![field.with_file_name(format!("{stem}.cameras.json"))];
     out.extend(field.parent().map(|d| d.join("transforms.json")));

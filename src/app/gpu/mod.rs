@@ -30,6 +30,7 @@ use bevy::asset::{Assets, Handle};
 use bevy::core_pipeline::core_3d::main_opaque_pass_3d;
 use bevy::core_pipeline::{Core3d, Core3dSystems, FullscreenShader};
 use bevy::prelude::*;
+use bevy::render::error_handler::{ErrorType, RenderError, RenderErrorHandler, RenderErrorPolicy};
 use bevy::render::extract_component::{ExtractComponent, ExtractComponentPlugin};
 use bevy::render::extract_resource::{ExtractResource, ExtractResourcePlugin};
 use bevy::render::render_resource::binding_types::{
@@ -41,7 +42,6 @@ use bevy::render::render_resource::{
     SamplerBindingType, SamplerDescriptor, ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines,
     TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType, TextureUsages, TextureView,
 };
-use bevy::render::error_handler::{ErrorType, RenderError, RenderErrorHandler, RenderErrorPolicy};
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::{Render, RenderApp, RenderStartup, RenderSystems};
 use bevy::shader::{Shader, ShaderDefVal};
@@ -538,8 +538,22 @@ fn upload_pool(
         ind.size,
         &ind.data,
     );
-    let density = pool_texture(device, queue, "isrf_pool_density", TextureFormat::R16Float, size, &t.density);
-    let rgb = pool_texture(device, queue, "isrf_pool_rgb", TextureFormat::Rgb10a2Unorm, size, &t.rgb);
+    let density = pool_texture(
+        device,
+        queue,
+        "isrf_pool_density",
+        TextureFormat::R16Float,
+        size,
+        &t.density,
+    );
+    let rgb = pool_texture(
+        device,
+        queue,
+        "isrf_pool_rgb",
+        TextureFormat::Rgb10a2Unorm,
+        size,
+        &t.rgb,
+    );
     let no_sh: Vec<[u16; 4]> = Vec::new();
     let sh = (0..pack::SH_TEXTURES)
         .map(|k| {
@@ -664,7 +678,11 @@ fn upload_fields(
     let textures = pack::pool_textures(&drawn, &plan);
     cache.atlas = Some(upload_pool(device, queue, &textures, &ind, plan.layout.bricks));
     cache.aux_buffer = Some(storage_buffer(device, "isrf_aux", bytemuck::cast_slice(&aux))?);
-    cache.sigma_buffer = Some(storage_buffer(device, "isrf_pool_sigma", bytemuck::cast_slice(&textures.sigma))?);
+    cache.sigma_buffer = Some(storage_buffer(
+        device,
+        "isrf_pool_sigma",
+        bytemuck::cast_slice(&textures.sigma),
+    )?);
     cache.field_buffer = Some(storage_buffer(device, "isrf_fields", bytemuck::cast_slice(&infos))?);
     cache.field_infos = infos;
     cache.budget = budget;
@@ -809,7 +827,11 @@ fn update_cache(
     let generation = cache.generation;
     status.update(|s| {
         // Keep a GPU error on show while its scene is the one shown.
-        s.error = s.gpu_error.as_ref().filter(|(g, _)| *g == generation).map(|(_, m)| m.clone());
+        s.error = s
+            .gpu_error
+            .as_ref()
+            .filter(|(g, _)| *g == generation)
+            .map(|(_, m)| m.clone());
     });
     Ok(())
 }

@@ -15,10 +15,10 @@
 //!   [`GpuField::skip`]`[3]` and [`GpuField::offsets`]`[0]` say where;
 //! - `bitmaps` (`array<u32>`): the words of every mask, in its field's
 //!   brick order ([`super::pool::brick_bits`]).
+use super::pool::PoolPlan;
 use crate::field::macro_grid::EMPTY_SIGMA;
 use crate::field::{Activation, Appearance, Bitmap, ChannelGrid, DensityGrid, Field, Layout};
 use crate::render::{Mask, Scene};
-use super::pool::PoolPlan;
 use crate::{ensure, Result};
 use bytemuck::{Pod, Zeroable};
 use glam::{Affine3A, Mat4, Vec3};
@@ -260,10 +260,18 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
             sparse_bit(g)
         }
         Appearance::Sh2(g) => {
-            ensure!(g.channels == 27, "SH appearance with {} channels (expected 27)", g.channels);
+            ensure!(
+                g.channels == 27,
+                "SH appearance with {} channels (expected 27)",
+                g.channels
+            );
             sparse_bit(g) | COLOR_SH
         }
-        Appearance::Vm { .. } => return Err(crate::Error::invalid("VM appearance must be baked into SH before it is drawn")),
+        Appearance::Vm { .. } => {
+            return Err(crate::Error::invalid(
+                "VM appearance must be baked into SH before it is drawn",
+            ))
+        }
     };
     let (dims, skip) = skip_grid(&field.density);
     let aux: Vec<u32> = skip
@@ -326,9 +334,12 @@ pub fn pool_textures(fields: &[&Field], plan: &PoolPlan) -> PoolTextures {
     let point = |f: usize, b: usize, l: [usize; 3]| bricks[f].point(b, l);
     let density = layout.fill(|f, b, l| point(f, b, l).map_or(0, |v| density_texel(fields[f].density.raw[v])));
     let has = |sh: bool| {
-        fields
-            .iter()
-            .any(|f| matches!((&f.appearance, sh), (Appearance::Sh2(_), true) | (Appearance::Rgb(_), false)))
+        fields.iter().any(|f| {
+            matches!(
+                (&f.appearance, sh),
+                (Appearance::Sh2(_), true) | (Appearance::Rgb(_), false)
+            )
+        })
     };
     let rgb = if has(false) {
         layout.fill(|f, b, l| match (&fields[f].appearance, point(f, b, l)) {
@@ -443,10 +454,18 @@ pub fn concat_fields(fields: &[&PackedField], plan: &PoolPlan) -> Result<(Vec<Gp
         let shown = bricks.res.map(|n| ((n - 1) * bricks.stride) as f32);
         let last = lo + (hi - lo) * Vec3::from(shown) / Vec3::from(full);
         info.bounds_max = v4(last, info.bounds_max[3]);
-        info.res = [bricks.res[0] as u32, bricks.res[1] as u32, bricks.res[2] as u32, info.res[3]];
+        info.res = [
+            bricks.res[0] as u32,
+            bricks.res[1] as u32,
+            bricks.res[2] as u32,
+            info.res[3],
+        ];
         infos.push(info);
     }
-    ensure!(aux.len() < u32::MAX as usize, "the fields are too large for the GPU view");
+    ensure!(
+        aux.len() < u32::MAX as usize,
+        "the fields are too large for the GPU view"
+    );
     Ok((infos, aux))
 }
 
@@ -710,7 +729,14 @@ mod tests {
         let mut sparse = f.clone();
         sparse.appearance = Appearance::Rgb(ChannelGrid::sparse(g, 3, ix, data));
         let fields = [&f, &sparse];
-        let plan = pool::plan(&[&f.density, &sparse.density], pool_texel_bytes(&fields), 2048, 1 << 30, usize::MAX).unwrap();
+        let plan = pool::plan(
+            &[&f.density, &sparse.density],
+            pool_texel_bytes(&fields),
+            2048,
+            1 << 30,
+            usize::MAX,
+        )
+        .unwrap();
         assert_eq!(plan.stride, 1);
         let tex = pool_textures(&fields, &plan);
         assert!(tex.sh.is_empty());
@@ -721,7 +747,9 @@ mod tests {
             let base = [slot % px, slot / px % py, slot / (px * py)].map(|c| c * pool::BRICK);
             for t in 0..pool::BRICK_TEXELS {
                 let l = pool::texel_coords(t);
-                let Some(v) = plan.fields[fi as usize].point(b as usize, l) else { continue };
+                let Some(v) = plan.fields[fi as usize].point(b as usize, l) else {
+                    continue;
+                };
                 let [x, y, z] = [0, 1, 2].map(|a| base[a] + l[a]);
                 let at = x + layout.size[0] * (y + layout.size[1] * z);
                 let field = fields[fi as usize];
@@ -729,7 +757,9 @@ mod tests {
                 let half = tex.sigma[at / 2] >> (16 * (at % 2)) & 0xffff;
                 let sigma = f16::from_f32(field.density.sigma_at(v)).to_bits() as u32;
                 assert_eq!(half, sigma, "activated density of texel {at}");
-                let Appearance::Rgb(rgb) = &field.appearance else { unreachable!() };
+                let Appearance::Rgb(rgb) = &field.appearance else {
+                    unreachable!()
+                };
                 assert_eq!(tex.rgb[at], rgb_texel(rgb, v));
                 if fi == 1 {
                     assert_eq!(tex.rgb[at] != 0, v % 7 == 0, "voxel {v}");
@@ -739,10 +769,13 @@ mod tests {
         }
         assert!(checked > 0);
         let want = g.point_of(g.index(8, 8, 8)) * 0.5 + 0.5;
-        let got = rgb_texel(match &f.appearance {
-            Appearance::Rgb(g) => g,
-            _ => unreachable!(),
-        }, g.index(8, 8, 8));
+        let got = rgb_texel(
+            match &f.appearance {
+                Appearance::Rgb(g) => g,
+                _ => unreachable!(),
+            },
+            g.index(8, 8, 8),
+        );
         assert!(((got & 1023) as f32 / 1023.0 - want.x).abs() < 1e-3);
         assert_eq!(got >> 30, 3);
         // Raw densities beyond f16 stay finite.
@@ -791,7 +824,8 @@ mod tests {
         let (infos, _) = concat_fields(&[&p, &p], &coarse).unwrap();
         assert_eq!(infos[0].res, [9, 9, 9, 0]);
         assert_eq!(infos[0].bounds_max[..3], [1.0, 1.0, 1.0]);
-        let odd = FieldBuilder::new(Aabb::new(Vec3::ZERO, Vec3::splat(15.0)), [16; 3]).build(|_| 1.0, |_| Vec3::ONE, None);
+        let odd =
+            FieldBuilder::new(Aabb::new(Vec3::ZERO, Vec3::splat(15.0)), [16; 3]).build(|_| 1.0, |_| Vec3::ONE, None);
         let po = pack_field(&odd).unwrap();
         coarse.fields = vec![pool::FieldBricks::build(&odd.density, 2)];
         let (infos, _) = concat_fields(&[&po], &coarse).unwrap();

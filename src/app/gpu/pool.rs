@@ -269,10 +269,7 @@ impl PoolLayout {
     /// coords)` for texels of occupied bricks, `T::default()` elsewhere.
     /// Filled one texel row at a time, in parallel, straight from the
     /// fields' grids (no per-brick staging copy).
-    pub fn fill<T: Copy + Default + Send>(
-        &self,
-        value: impl Fn(usize, usize, [usize; 3]) -> T + Sync,
-    ) -> Vec<T> {
+    pub fn fill<T: Copy + Default + Send>(&self, value: impl Fn(usize, usize, [usize; 3]) -> T + Sync) -> Vec<T> {
         let [sx, sy, _] = self.size;
         let [px, py, _] = self.bricks;
         let mut out = vec![T::default(); self.texels()];
@@ -337,7 +334,10 @@ pub fn plan(
             }
         }
         // Coarser, as long as every axis keeps two points.
-        if fields.iter().any(|d| d.geom.res.iter().any(|&n| (n - 1) / (2 * stride) < 1)) {
+        if fields
+            .iter()
+            .any(|d| d.geom.res.iter().any(|&n| (n - 1) / (2 * stride) < 1))
+        {
             break;
         }
         stride *= 2;
@@ -360,7 +360,13 @@ mod tests {
     fn corner_ball() -> DensityGrid {
         FieldBuilder::new(Aabb::new(Vec3::ZERO, Vec3::new(29.0, 19.0, 15.0)), [30, 20, 16])
             .build(
-                |p| if (p - Vec3::splat(3.0)).length() < 2.5 { 5.0 } else { -1.0 },
+                |p| {
+                    if (p - Vec3::splat(3.0)).length() < 2.5 {
+                        5.0
+                    } else {
+                        -1.0
+                    }
+                },
                 |_| Vec3::ONE,
                 None,
             )
@@ -414,9 +420,7 @@ mod tests {
         let ball = corner_ball();
         let coarse = FieldBricks::build(&ball, 8);
         assert_eq!(coarse.count(), 1);
-        assert!((0..BRICK_TEXELS).any(|t| coarse
-            .point(0, texel_coords(t))
-            .is_some_and(|v| ball.sigma_at(v) > 1.0)));
+        assert!((0..BRICK_TEXELS).any(|t| coarse.point(0, texel_coords(t)).is_some_and(|v| ball.sigma_at(v) > 1.0)));
     }
 
     #[test]
@@ -453,11 +457,18 @@ mod tests {
                 tex[x + layout.size[0] * (y + layout.size[1] * z)]
             };
             for l in [[0, 0, 0], [7, 0, 0], [3, 5, 7], [7, 7, 7]] {
-                assert_eq!(at(l), (f * 1000 + b * 10) + (l[0] + l[1] + l[2]) as u32 + 1, "slot {slot}");
+                assert_eq!(
+                    at(l),
+                    (f * 1000 + b * 10) + (l[0] + l[1] + l[2]) as u32 + 1,
+                    "slot {slot}"
+                );
             }
         }
         // Unused slots stay at the default.
-        assert_eq!(tex.iter().filter(|&&v| v == 0).count(), (px * py * pz - 11) * BRICK_TEXELS);
+        assert_eq!(
+            tex.iter().filter(|&&v| v == 0).count(),
+            (px * py * pz - 11) * BRICK_TEXELS
+        );
         // Too small a texture: no layout.
         assert!(PoolLayout::new(&[&many], 8).is_none());
     }
@@ -481,7 +492,10 @@ mod tests {
         let mut solid = d.clone();
         solid.raw.fill(5.0);
         let brick_bytes = BRICK_TEXELS * 2;
-        assert_eq!(plan(&[&solid], 2, 2048, 45 * brick_bytes, usize::MAX).unwrap().stride, 1);
+        assert_eq!(
+            plan(&[&solid], 2, 2048, 45 * brick_bytes, usize::MAX).unwrap().stride,
+            1
+        );
         let p = plan(&[&solid], 2, 2048, 10 * brick_bytes, usize::MAX).unwrap();
         assert_eq!(p.stride, 2);
         assert_eq!(p.fields[0].count(), 4);
