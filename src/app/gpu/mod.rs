@@ -429,11 +429,10 @@ struct GpuSceneCache {
 /// A storage buffer holding `data`, padded to a multiple of 16 bytes and to
 /// at least 256: empty bindings are not allowed, and a runtime-sized array
 /// binding must hold one element (`Layer` is 160 bytes) even when the scene
-/// is empty. Refuses (with a message naming `what`) data beyond the
+/// is empty. Refuses (with a message naming `label`) data beyond the
 /// device's binding limit, which would otherwise be a validation error.
 fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> crate::Result<Buffer> {
-    let limits = device.limits();
-    let max = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size) as usize;
+    let max = binding_limit(device);
     crate::ensure!(
         data.len() <= max,
         "{label}: {} MB exceed the GPU's {} MB storage binding limit",
@@ -447,6 +446,12 @@ fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> cr
         contents: &bytes,
         usage: BufferUsages::STORAGE | BufferUsages::COPY_DST,
     }))
+}
+
+/// Bytes one storage buffer binding may hold on this device.
+fn binding_limit(device: &RenderDevice) -> usize {
+    let limits = device.limits();
+    limits.max_storage_buffer_binding_size.min(limits.max_buffer_size) as usize
 }
 
 /// The pool on the GPU; textures a scene does not use hold one texel.
@@ -664,10 +669,9 @@ fn upload_fields(
     cache.field_buffer = None;
     let drawn: Vec<&Field> = cache.fields.iter().map(|s| &*s.drawn).collect();
     let densities: Vec<&crate::field::DensityGrid> = drawn.iter().map(|f| &f.density).collect();
-    let limits = device.limits();
-    let max_side = limits.max_texture_dimension_3d as usize;
+    let max_side = device.limits().max_texture_dimension_3d as usize;
     // The activated densities (two bytes a texel) are one storage binding.
-    let max_texels = 2 * limits.max_storage_buffer_binding_size.min(limits.max_buffer_size) as usize / 4;
+    let max_texels = binding_limit(device) / 2;
     let plan = pool::plan(&densities, pack::pool_texel_bytes(&drawn), max_side, budget, max_texels)?;
     let parts: Vec<&PackedField> = cache.fields.iter().map(|s| &s.packed).collect();
     let (mut infos, aux) = pack::concat_fields(&parts, &plan)?;
@@ -793,8 +797,7 @@ fn update_cache(
     let wanted = pack::distinct_fields(scene);
     update_fields(cache, &wanted, march.memory_budget, device, queue, status)?;
     let bitmaps = pack::distinct_bitmaps(scene, &march.overlay);
-    let counts = mask_word_counts(cache, &bitmaps);
-    let (offs, total) = pack::bitmap_offsets(bitmaps.len(), |k| counts[k]);
+    let (offs, total) = pack::bitmap_offsets(&mask_word_counts(cache, &bitmaps));
     update_bitmaps(cache, bitmaps, &offs, total, device, queue, status)?;
     // Layers: small, repacked every frame.
     let layers = pack::pack_layers(scene, &wanted, &cache.bitmaps, &offs, &march.overlay)?;

@@ -528,15 +528,17 @@ pub fn distinct_bitmaps(scene: &Scene, overlay: &[Overlay]) -> Vec<MaskRef> {
     out
 }
 
-/// Word offsets (u32 units) of each mask in the concatenated buffer, and
-/// the total word count; `words(k)` is mask k's word count.
-pub fn bitmap_offsets(count: usize, words: impl Fn(usize) -> usize) -> (Vec<u32>, usize) {
-    let mut offs = Vec::with_capacity(count);
+/// Word offsets (u32 units) of masks of `words` words each in the
+/// concatenated buffer, and the total word count.
+pub fn bitmap_offsets(words: &[usize]) -> (Vec<u32>, usize) {
     let mut total = 0usize;
-    for k in 0..count {
-        offs.push(total as u32);
-        total += words(k);
-    }
+    let offs = words
+        .iter()
+        .map(|&n| {
+            total += n;
+            (total - n) as u32
+        })
+        .collect();
     (offs, total)
 }
 
@@ -853,7 +855,7 @@ mod tests {
         assert_eq!(fields.len(), 1);
         let bms = distinct_bitmaps(&scene, &[]);
         assert_eq!(bms.len(), 2);
-        let (offs, total) = bitmap_offsets(bms.len(), |k| 16 * (k + 1));
+        let (offs, total) = bitmap_offsets(&[16, 32]);
         assert_eq!(offs, vec![0, 16]);
         assert_eq!(total, 48);
         let layers = pack_layers(&scene, &fields, &bms, &offs, &[]).unwrap();
