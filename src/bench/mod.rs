@@ -6,7 +6,10 @@
 //! - [`segment`]: per-stage times of stroke → mask against the dense
 //!   reference implementation, with an identity check of the outputs.
 //! - [`train`]: trainer throughput per stage and phase.
+//! - [`quality`]: segmentation quality with exact ground truth on fields
+//!   trained from renders of the demo scenes.
 
+pub mod quality;
 pub mod render;
 pub mod segment;
 pub mod train;

@@ -62,14 +62,20 @@ pub fn demo_capture(scene: &str, res: usize, n: usize, width: u32) -> Result<Dem
     })
 }
 
-/// `n` cameras looking at the orbit's centre from the orbit's distance.
-fn views_around(orbit: &[Camera], n: usize, width: u32) -> Vec<Camera> {
-    let m = orbit.len() as f32;
+/// Centre and distance of a demo scene's orbit (its cameras ring the centre
+/// at [`crate::demo::ORBIT_ELEVATION_DEG`]).
+pub fn orbit_centre(orbit: &[Camera]) -> (Vec3, f32) {
+    let m = orbit.len().max(1) as f32;
     let ring = orbit.iter().map(|c| c.position()).sum::<Vec3>() / m;
     let r_h = orbit.iter().map(|c| (c.position() - ring).length()).sum::<f32>() / m;
     let elev = crate::demo::ORBIT_ELEVATION_DEG.to_radians();
     let radius = r_h / elev.cos();
-    let center = ring - Vec3::Y * radius * elev.sin();
+    (ring - Vec3::Y * radius * elev.sin(), radius)
+}
+
+/// `n` cameras looking at the orbit's centre from the orbit's distance.
+fn views_around(orbit: &[Camera], n: usize, width: u32) -> Vec<Camera> {
+    let (center, radius) = orbit_centre(orbit);
     let factor = (orbit[0].intrinsics.width / width.max(1)).max(1);
     let k = orbit[0].intrinsics.downscaled(factor);
     (0..n)

@@ -22,6 +22,41 @@ pub enum What {
     Editor(super::edit::BenchArgs),
     /// Rays/s and iterations/s of the trainer (a dataset, or a rendered demo capture).
     Train(TrainArgs),
+    /// Segmentation quality with exact ground truth: fields trained (as
+    /// `isrf train` does, real teacher) on renders of the demo scenes, every
+    /// object segmented from one stroke with the default parameters.
+    Quality(QualityArgs),
+}
+
+#[derive(clap::Args)]
+pub struct QualityArgs {
+    /// Demo scenes, comma separated (default: all).
+    #[arg(long, value_delimiter = ',')]
+    pub scenes: Vec<String>,
+    /// Resolution of the ground-truth scenes (rendered and scored against).
+    #[arg(long, default_value_t = 192)]
+    pub res: usize,
+    /// Training views per scene (a spiral over the upper hemisphere).
+    #[arg(long, default_value_t = 80)]
+    pub views: usize,
+    /// Image width (400 divided by a whole number; 4:3 images).
+    #[arg(long, default_value_t = 200)]
+    pub width: u32,
+    /// Radiance iterations (default: the Blender preset's, as `isrf train`).
+    #[arg(long)]
+    pub iters: Option<usize>,
+    /// Distillation iterations (default: `isrf train`'s).
+    #[arg(long)]
+    pub feature_iters: Option<usize>,
+    /// Negative strokes (on the nearest objects) per object in the NVOS-style test.
+    #[arg(long, default_value_t = 2)]
+    pub negatives: usize,
+    /// Train again instead of using the cached fields.
+    #[arg(long)]
+    pub retrain: bool,
+    /// Print the report as JSON instead of tables.
+    #[arg(long)]
+    pub json: bool,
 }
 
 #[derive(clap::Args)]
@@ -50,6 +85,7 @@ pub fn run(a: Args) -> Result<()> {
         What::Segment(a) => run_segment(a),
         What::Editor(a) => super::edit::bench(a),
         What::Train(a) => run_train(a),
+        What::Quality(a) => run_quality(a),
     }
 }
 
@@ -231,5 +267,46 @@ fn run_train(a: TrainArgs) -> Result<()> {
     let (i, r, s) = totals(&rows, "radiance");
     println!("it/s: {:.2}", i as f64 / s.max(1e-9));
     println!("rays/s: {:.0}", r as f64 / s.max(1e-9));
+    Ok(())
+}
+
+fn run_quality(a: QualityArgs) -> Result<()> {
+    use isrf::bench::quality::{bench_quality, object_table, run_lines, QualityConfig};
+    let mut cfg = QualityConfig {
+        demo_res: a.res,
+        views: a.views,
+        width: a.width,
+        iters: a.iters,
+        feature_iters: a.feature_iters,
+        retrain: a.retrain,
+        negatives: a.negatives,
+        ..Default::default()
+    };
+    if !a.scenes.is_empty() {
+        cfg.scenes = a.scenes;
+    }
+    let r = bench_quality(&cfg)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+        return Ok(());
+    }
+    println!(
+        "segmentation quality on renders of the demo scenes, fields trained as `isrf train` (Blender preset, \
+         default teacher), one positive stroke per object, default segmentation parameters, {} rayon threads",
+        rayon::current_num_threads()
+    );
+    for l in run_lines(&r) {
+        println!("{l}");
+    }
+    println!(
+        "3D IoU: occupied voxels of the trained field labelled by the label grid at their centres \
+         (σ>0: only where the true density is non-zero); 2D: held-out views, opacity > 0.1; \
+         NVOS: stroke + {} negative strokes on the nearest objects, IoU on the held-out view where the object is largest",
+        cfg.negatives
+    );
+    print!("{}", object_table(&r));
+    println!("realistic NVOS mean 2D mIoU: {:.3}", r.nvos_mean_miou);
+    println!("realistic mean 2D mIoU: {:.3}, accuracy: {:.3}", r.mean_miou2d, r.mean_accuracy2d);
+    println!("realistic min 3D IoU: {:.3}, mean: {:.3}", r.min_iou3d, r.mean_iou3d);
     Ok(())
 }

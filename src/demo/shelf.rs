@@ -96,8 +96,9 @@ pub fn recipe(seed: u64, _voxel: f32) -> Recipe {
         x += w;
     }
 
-    // Honey jar with a red lid on the middle board.
-    let jar_c = v(0.32, mid, 0.0);
+    // Honey jar with a red lid on the middle board, against the
+    // excavator's bucket (amber next to yellow: a similar-looking neighbour).
+    let jar_c = v(0.185, mid, 0.0);
     let jar = r.object(
         "jar",
         Kind::Jar,

