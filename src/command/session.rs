@@ -10,8 +10,8 @@ use crate::error::{Error, Result};
 use crate::field::{Bitmap, Field};
 use crate::render::{render, save_png, to_rgb8, ColorEdit, Layer, Probe, RenderOptions, Scene};
 use crate::segment::{
-    apply_region, load_strokes, region_from_stroke, scribble_stroke, Grower, Growth, Polarity, SegmentParams, Stroke,
-    Timings, MAX_GROW_STEPS,
+    apply_region, load_strokes, mask_bound, region_from_stroke, scribble_stroke, Grower, Growth, Polarity,
+    SegmentParams, Stroke, Timings, MAX_GROW_STEPS,
 };
 use crate::util::Progress;
 use crate::{ensure, Result as R};
@@ -241,6 +241,9 @@ impl Session {
                 let cache = f.field.feature_cache()?;
                 let mut mask = (*o.mask).clone();
                 let mut g = Grower::new(&cache, st.params.grow);
+                if let Some(b) = mask_bound(&cache, &mask, &st.params) {
+                    g = g.with_bound(b);
+                }
                 let total = match steps {
                     Growth::Steps(n) => *n as u64,
                     Growth::Converge => 0,

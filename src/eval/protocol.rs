@@ -231,6 +231,12 @@ pub struct NvosReport {
     pub accuracy: f64,
     pub ap: f64,
     pub voxels: usize,
+    /// The predicted mask on the target view (row-major, mask size), for
+    /// `isrf eval --mask-out`.
+    #[serde(skip)]
+    pub predicted: Vec<bool>,
+    #[serde(skip)]
+    pub size: [u32; 2],
 }
 
 fn frame_camera(cams: &CameraSet, name: &str) -> Result<Camera> {
@@ -346,6 +352,8 @@ pub fn evaluate_nvos(
         accuracy: c.accuracy(),
         ap: average_precision(&f.out.probe_opacity, &gt),
         voxels: mask.count(),
+        predicted: pred,
+        size: [gt_img.width(), gt_img.height()],
     })
 }
 

@@ -10,7 +10,7 @@ pub mod kmeans;
 pub mod nnfm;
 pub mod stroke;
 
-pub use grow::{grow_step_dense, GrowParams, Grower};
+pub use grow::{grow_step_dense, Bound, GrowParams, Grower, GrowthRule};
 pub use kmeans::{kmeans, Centroids};
 pub use nnfm::nnfm_seed;
 pub use stroke::{
@@ -37,8 +37,9 @@ pub enum Growth {
 
 pub const MAX_GROW_STEPS: usize = 10_000;
 
-/// Segmentation parameters; defaults from the paper's supplement and the
-/// authors' code.
+/// Segmentation parameters. The defaults are the bounded growth rule
+/// (see [`grow`]), measured on real captures; [`SegmentParams::paper`] is the
+/// paper's rule with the defaults of its supplement and the authors' code.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct SegmentParams {
@@ -50,6 +51,11 @@ pub struct SegmentParams {
     pub growth: Growth,
     /// Voxels need σ above this to be seeds.
     pub seed_floor: f32,
+    /// Bounded rule: seeds and grown voxels must be solid, i.e. stop at
+    /// least this fraction of the light over one voxel (1 − exp(−σ·h), h
+    /// the voxel size): the haze of a real capture has features that match
+    /// anything and must not carry the selection.
+    pub solid_alpha: f32,
     /// Stroke pixels with rendered opacity below this are on empty space.
     pub min_stroke_opacity: f32,
     pub kmeans_seed: u64,
@@ -64,10 +70,34 @@ impl Default for SegmentParams {
             grow: GrowParams::default(),
             growth: Growth::Converge,
             seed_floor: 0.1,
+            solid_alpha: 0.02,
             min_stroke_opacity: 0.5,
             kmeans_seed: 0,
             kmeans_iters: 50,
         }
+    }
+}
+
+impl SegmentParams {
+    /// The paper's method: its growth rule, σ_φ = 10, τ = 0.1, no solidity
+    /// floor (for the ablation).
+    pub fn paper() -> Self {
+        SegmentParams {
+            grow: GrowParams::paper(),
+            solid_alpha: 0.0,
+            ..Default::default()
+        }
+    }
+
+    /// The σ below which voxels are neither seeds nor (bounded rule) grown
+    /// into, on a grid of voxel size `h`.
+    pub fn sigma_floor(&self, h: f32) -> f32 {
+        let solid = if self.solid_alpha > 0.0 {
+            -(1.0 - self.solid_alpha).ln() / h.max(1e-12)
+        } else {
+            0.0
+        };
+        self.seed_floor.max(solid)
     }
 }
 
@@ -102,6 +132,16 @@ impl SegmentParams {
         ensure!(
             self.seed_floor.is_finite() && self.seed_floor >= 0.0,
             "seed floor must be >= 0"
+        );
+        ensure!(
+            self.solid_alpha.is_finite() && (0.0..1.0).contains(&self.solid_alpha),
+            "solid alpha must be in [0, 1), got {}",
+            self.solid_alpha
+        );
+        ensure!(
+            g.theta_grow > 0.0 && !g.theta_grow.is_nan(),
+            "theta_grow must be positive, got {}",
+            g.theta_grow
         );
         Ok(())
     }
@@ -148,15 +188,47 @@ pub fn region_from_features(
     let centres = stroke_centres(feats, dim, p);
     t.kmeans_ms = ms_since(t0);
     let t0 = Instant::now();
-    let mut region = nnfm_seed(cache, &centres, p.theta, p.seed_floor);
+    let floor = match p.grow.rule {
+        GrowthRule::Paper => p.seed_floor,
+        GrowthRule::Bounded => p.sigma_floor(cache.geom.spacing().min_element()),
+    };
+    let mut region = nnfm_seed(cache, &centres, p.theta, floor);
     t.nnfm_ms = ms_since(t0);
     t.seed_voxels = region.count();
     let t0 = Instant::now();
     let mut g = Grower::new(cache, p.grow);
+    if p.grow.rule == GrowthRule::Bounded {
+        g = g.with_bound(Bound::new(centres, p.grow.theta_grow.max(p.theta), floor));
+    }
     t.grow_steps = g.grow(&mut region, p.growth, MAX_GROW_STEPS, |_| ());
     t.grow_ms = ms_since(t0);
     t.region_voxels = region.count();
     Ok(region)
+}
+
+/// The bound of a `Bounded` growth step asked for on its own (the editor's
+/// "grow" button, the `grow` command): grown voxels must look like what the
+/// mask already holds, i.e. match K-means centres of its unit features.
+/// `None` for the paper's rule, which is unbounded.
+pub fn mask_bound(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Option<Bound> {
+    if p.grow.rule != GrowthRule::Bounded {
+        return None;
+    }
+    // A strided sample keeps K-means cheap on large masks.
+    const MAX_ROWS: usize = 20_000;
+    let rows: Vec<usize> = mask.ones().filter_map(|v| cache.index.slot(v)).collect();
+    let stride = rows.len().div_ceil(MAX_ROWS).max(1);
+    let c = cache.channels;
+    let mut feats = Vec::with_capacity(rows.len().div_ceil(stride) * c);
+    for &r in rows.iter().step_by(stride) {
+        let inv = cache.inv_norm[r];
+        if inv > 0.0 {
+            feats.extend(cache.row(r).iter().map(|x| x * inv));
+        }
+    }
+    let centres = stroke_centres(&feats, c, p);
+    let floor = p.sigma_floor(cache.geom.spacing().min_element());
+    Some(Bound::new(centres, p.grow.theta_grow.max(p.theta), floor))
 }
 
 /// One stroke on `scene` (which must contain the field whose cache is given,

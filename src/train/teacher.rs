@@ -80,7 +80,8 @@ pub fn channels_last(planar: &[f32], channels: usize) -> Vec<f32> {
 /// Where teacher features come from.
 #[derive(Clone, Debug, PartialEq)]
 pub enum TeacherSource {
-    /// An ONNX ViT run on every training image ([`super::vit`]).
+    /// An ONNX ViT run on every training image ([`super::vit`]); `size` is
+    /// the long side of its input (0 = automatic, [`super::vit::input_dims`]).
     Onnx { path: PathBuf, output: String, size: u32 },
     /// A folder of precomputed maps, one `.npy` / `.npz` per image named
     /// after it (`r_0.npy` or `r_0.png.npy`), `[h, w, C]` or `[C, h, w]`
@@ -112,6 +113,10 @@ impl TeacherSource {
         match self {
             TeacherSource::Onnx { path, output, size } => {
                 let (len, modified) = file_stamp(path);
+                let size = match size {
+                    0 => format!("auto {}..{}", super::vit::AUTO_MIN_SIDE, super::vit::AUTO_MAX_SIDE),
+                    s => s.to_string(),
+                };
                 format!(
                     "onnx {} ({len} bytes, modified {modified}) output {output} size {size}",
                     path.display()
@@ -180,10 +185,19 @@ pub fn teacher_features(
     }
     let raw = match source {
         TeacherSource::Onnx { path, output, size } => {
-            let vit = super::vit::Vit::load(path, output, *size)?;
+            // One prepared model per input size (captures rarely mix sizes).
+            let mut vits: Vec<super::vit::Vit> = Vec::new();
             let mut maps = Vec::with_capacity(images.len());
             for (i, img) in images.iter().enumerate() {
-                maps.push(vit.run(img)?);
+                let dims = super::vit::input_dims(*size, img.width, img.height);
+                let k = match vits.iter().position(|v| v.dims == dims) {
+                    Some(k) => k,
+                    None => {
+                        vits.push(super::vit::Vit::load(path, output, dims)?);
+                        vits.len() - 1
+                    }
+                };
+                maps.push(vits[k].run(img)?);
                 progress(i + 1, images.len());
             }
             maps

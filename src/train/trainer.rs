@@ -324,6 +324,29 @@ impl Trainer {
         self.useful = self.rays.hitting(&self.model.geom.bounds);
     }
 
+    /// Drops the distilled features and rewinds to the start of the feature
+    /// phase, with density and colour frozen: distils again (another
+    /// teacher, feature grid size or iteration count) without retraining the
+    /// radiance field.
+    pub fn restart_features(&mut self, feature_res: Option<usize>) -> Result<()> {
+        if let Some(r) = feature_res {
+            self.config.feature_res = r;
+        }
+        self.config.freeze_geometry = true;
+        self.config.validate()?;
+        ensure!(
+            self.iter >= self.config.iters,
+            "the checkpoint is at iteration {} of {}: finish the radiance phase before distilling again",
+            self.iter,
+            self.config.iters
+        );
+        self.model.features = None;
+        self.iter = self.config.iters;
+        self.history.retain(|s| s.iter <= self.config.iters);
+        self.reset_buffers(true);
+        Ok(())
+    }
+
     pub fn is_done(&self) -> bool {
         self.iter >= self.config.total_iters()
     }

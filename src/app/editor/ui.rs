@@ -16,7 +16,7 @@ use crate::app::convert::{bevy_transform, to_bevy_vec3};
 use crate::app::gpu::SharedStatus;
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
 use crate::command::{CameraSource, Command, Export, FieldSource};
-use crate::segment::Growth;
+use crate::segment::{Growth, GrowthRule, SegmentParams};
 use crate::util::ProgressState;
 use bevy::camera::visibility::RenderLayers;
 use bevy::camera::{CameraOutputMode, ClearColorConfig, Projection, Viewport};
@@ -424,15 +424,34 @@ fn tools_panel(
     ui.heading("Segmentation");
     let p = &mut state.params;
     let mut commit = false;
+    let mut rule = None;
+    ui.horizontal(|ui| {
+        ui.label("growth rule");
+        for (r, name) in [(GrowthRule::Bounded, "bounded"), (GrowthRule::Paper, "paper")] {
+            if ui.selectable_label(p.grow.rule == r, name).clicked() && p.grow.rule != r {
+                rule = Some(r);
+            }
+        }
+    });
     commit |= committed(&ui.add(egui::Slider::new(&mut p.k, 1..=64).text("K (clusters)")));
     commit |= committed(&ui.add(egui::Slider::new(&mut p.theta, 0.01..=2.0).text("θ (NNFM)")));
     commit |= committed(
         &ui.add(
-            egui::Slider::new(&mut p.grow.sigma_f, 0.1..=50.0)
+            egui::Slider::new(&mut p.grow.sigma_f, 0.01..=50.0)
                 .logarithmic(true)
                 .text("σ_φ"),
         ),
     );
+    if p.grow.rule == GrowthRule::Bounded {
+        commit |= committed(&ui.add(egui::Slider::new(&mut p.grow.theta_grow, 0.01..=4.0).text("θ grow")));
+        commit |= committed(
+            &ui.add(
+                egui::Slider::new(&mut p.solid_alpha, 0.0..=0.5)
+                    .logarithmic(true)
+                    .text("solid α"),
+            ),
+        );
+    }
     commit |= committed(
         &ui.add(
             egui::Slider::new(&mut p.grow.sigma_s, 0.1..=10.0)
@@ -442,15 +461,26 @@ fn tools_panel(
     );
     commit |= committed(&ui.add(egui::Slider::new(&mut p.grow.tau, 0.0..=0.99).text("τ")));
     ui.checkbox(&mut state.live, "live: redo the last stroke with new values");
+    if let Some(r) = rule {
+        // A rule change resets the sliders to that rule's defaults.
+        state.params = match r {
+            GrowthRule::Paper => SegmentParams::paper(),
+            GrowthRule::Bounded => SegmentParams::default(),
+        };
+        commit = true;
+    }
     if commit && state.params != es.state.params {
         let p = state.params;
         let set = Command::SetParams {
+            rule,
             k: Some(p.k),
             theta: Some(p.theta),
             sigma_f: Some(p.grow.sigma_f),
             sigma_s: Some(p.grow.sigma_s),
             tau: Some(p.grow.tau),
             growth: None,
+            theta_grow: Some(p.grow.theta_grow),
+            solid_alpha: Some(p.solid_alpha),
         };
         // Live re-segmentation: take back the last stroke, change the
         // parameters, stroke again (all through the session, so undo works).
