@@ -8,10 +8,14 @@
 //! every object from its one built-in positive stroke with
 //! [`SegmentParams::default`] and score it:
 //!
-//! - 3D IoU by resampling: every occupied voxel of the trained field (σ above
-//!   [`OCCUPIED_FLOOR`]) takes the label-grid label at its centre; also over
-//!   the occupied voxels where the true density is non-zero (ignores haze
-//!   and floaters, which no label can claim);
+//! - 3D IoU by resampling: every visible voxel of the trained field (σ above
+//!   [`visible_floor`]: at least 1 % opacity across one voxel) takes the
+//!   label-grid label at its centre; also over the visible voxels where the
+//!   true density is non-zero (ignores haze and floaters, which no label can
+//!   claim). A trained field keeps a faint density (σ ≈ 0.01) wherever no
+//!   ray looked (inside objects, under the floor): counting it at the
+//!   segmentation's own floor ([`OCCUPIED_FLOOR`]) would let invisible voxels
+//!   dominate both sets;
 //! - 2D mIoU / accuracy on the held-out views: predicted mask = the object's
 //!   rendered opacity in the trained field > 0.1, true mask = the label
 //!   bitmap's opacity in the true field > 0.1;
@@ -105,10 +109,7 @@ impl QualityConfig {
             self.width,
             demo::WIDTH
         );
-        crate::ensure!(
-            self.iters != Some(0),
-            "at least one radiance iteration is needed"
-        );
+        crate::ensure!(self.iters != Some(0), "at least one radiance iteration is needed");
         Ok(())
     }
 
@@ -229,10 +230,7 @@ pub struct TrainedMeta {
 /// The field file and its metadata file for `key` in `dir`.
 fn cache_paths(dir: &Path, key: &str) -> (PathBuf, PathBuf) {
     let h = format!("{:016x}", fnv(key.as_bytes()));
-    (
-        dir.join(format!("{h}.safetensors")),
-        dir.join(format!("{h}.json")),
-    )
+    (dir.join(format!("{h}.safetensors")), dir.join(format!("{h}.json")))
 }
 
 /// Stores a trained field under `meta.key` (field first, metadata last, both
@@ -305,7 +303,12 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
         )
     })?;
     let t0 = Instant::now();
-    let report = session.attach_teacher(&teacher, DEFAULT_FEATURE_DIMS, default_cache_dir().as_deref(), &|_, _| ())?;
+    let report = session.attach_teacher(
+        &teacher,
+        DEFAULT_FEATURE_DIMS,
+        default_cache_dir().as_deref(),
+        &|_, _| (),
+    )?;
     let teacher_seconds = t0.elapsed().as_secs_f64();
     let maps = session.trainer.teacher.as_ref().expect("teacher just attached");
     let mut crc = crc32fast::Hasher::new();
@@ -367,9 +370,17 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
 
 // ---------------------------------------------------------------- scoring
 
-/// The occupied voxels of a field (σ > [`OCCUPIED_FLOOR`], the voxels a
-/// segmentation can select) with their ground truth: the label at each
-/// voxel's centre and whether the true density there is non-zero.
+/// Density above which a voxel of `field` is visible: 1 % opacity across
+/// one voxel (1 − exp(−σ h) ≥ 0.01, h the finest voxel side), and at least
+/// the segmentation's own floor.
+pub fn visible_floor(field: &Field) -> f32 {
+    let h = field.geom().spacing().min_element();
+    (-(0.99f32).ln() / h).max(OCCUPIED_FLOOR)
+}
+
+/// The voxels of a field with σ above a floor (e.g. [`visible_floor`]) with
+/// their ground truth: the label at each voxel's centre and whether the
+/// true density there is non-zero.
 pub struct Resampled {
     pub res: [usize; 3],
     pub voxels: Vec<u32>,
@@ -378,7 +389,7 @@ pub struct Resampled {
 }
 
 impl Resampled {
-    pub fn new(field: &Field, truth: &Field, labels: &Labels) -> Result<Self> {
+    pub fn new(field: &Field, floor: f32, truth: &Field, labels: &Labels) -> Result<Self> {
         let geom = field.geom();
         crate::ensure!(
             geom.len() <= u32::MAX as usize,
@@ -386,7 +397,7 @@ impl Resampled {
             geom.res
         );
         let d = &field.density;
-        let occupied = Bitmap::from_fn(geom.res, |i| d.sigma_at(i) > OCCUPIED_FLOOR);
+        let occupied = Bitmap::from_fn(geom.res, |i| d.sigma_at(i) > floor);
         let voxels: Vec<u32> = occupied.ones().map(|i| i as u32).collect();
         let (labels, true_density) = voxels
             .par_iter()
@@ -415,8 +426,9 @@ impl Resampled {
     }
 
     /// 3D IoU of `pred` (a bitmap of the field's grid) with `label` over the
-    /// occupied voxels, and over those where the true density is non-zero.
-    pub fn iou(&self, pred: &Bitmap, label: u8) -> Result<(f64, f64)> {
+    /// voxels above the floor, and over those where the true density is
+    /// non-zero; and how many of them `pred` selects.
+    pub fn iou(&self, pred: &Bitmap, label: u8) -> Result<(f64, f64, usize)> {
         crate::ensure!(
             pred.res() == self.res,
             "prediction grid {:?} is not the field's {:?}",
@@ -452,7 +464,7 @@ impl Resampled {
                 tp as f64 / d as f64
             }
         };
-        Ok((iou(c[0], c[1], c[2]), iou(c[3], c[4], c[5])))
+        Ok((iou(c[0], c[1], c[2]), iou(c[3], c[4], c[5]), (c[0] + c[1]) as usize))
     }
 }
 
@@ -551,6 +563,8 @@ pub fn nearest_objects(boxes: &[Option<Aabb>], label: u8, candidates: &[u8], n: 
 pub struct ObjectRow {
     pub scene: String,
     pub object: String,
+    /// Voxels above the visibility floor that the stroke selects / that
+    /// carry the object's label.
     pub voxels_selected: usize,
     pub voxels_true: usize,
     pub iou3d: f64,
@@ -558,6 +572,10 @@ pub struct ObjectRow {
     pub iou3d_dense: f64,
     pub miou2d: f64,
     pub accuracy2d: f64,
+    /// 2D mIoU of the best selection on this field: its visible voxels that
+    /// carry the label (what a perfect segmentation would score; below 1
+    /// where the trained field itself is off).
+    pub ceiling2d: f64,
     /// NVOS-style: stroke + negatives on the stroke view, IoU on `nvos_view`.
     pub nvos_iou: f64,
     pub nvos_view: String,
@@ -611,7 +629,7 @@ pub fn score_scene(
     let cache = field.feature_cache()?;
     let render_scene = Scene::single(field.clone());
     let truth_field = Arc::new(scene.field.clone());
-    let resampled = Resampled::new(field, &scene.field, &scene.labels)?;
+    let resampled = Resampled::new(field, visible_floor(field), &scene.field, &scene.labels)?;
     let boxes = label_boxes(&scene.labels);
     let stroked: Vec<u8> = scene
         .objects
@@ -628,7 +646,7 @@ pub fn score_scene(
         let t0 = Instant::now();
         let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, &params)?;
         let seconds = t0.elapsed().as_secs_f64();
-        let (iou3d, iou3d_dense) = resampled.iou(&region, label)?;
+        let (iou3d, iou3d_dense, selected) = resampled.iou(&region, label)?;
         // NVOS-style: the same stroke, minus negative strokes on neighbours.
         let near = nearest_objects(&boxes, label, &stroked, negatives);
         let mut nvos = region.clone();
@@ -641,29 +659,36 @@ pub fn score_scene(
         rows.push(ObjectRow {
             scene: scene.name.clone(),
             object: o.name.clone(),
-            voxels_selected: region.count(),
+            voxels_selected: selected,
             voxels_true: resampled.truth(label).count(),
             iou3d,
             iou3d_dense,
             miou2d: 0.0,
             accuracy2d: 0.0,
+            ceiling2d: 0.0,
             nvos_iou: 0.0,
             nvos_view: String::new(),
-            nvos_negatives: near.iter().map(|&n| scene.objects[n as usize - 1].name.clone()).collect(),
+            nvos_negatives: near
+                .iter()
+                .map(|&n| scene.objects[n as usize - 1].name.clone())
+                .collect(),
             seconds,
         });
         let g = truths.len();
         truths.push(Arc::new(scene.labels.mask(label)));
         preds.push((Arc::new(region), g));
         preds.push((Arc::new(nvos), g));
+        preds.push((Arc::new(resampled.truth(label)), g));
     }
     let conf = confusions_2d(field, &truth_field, views, &preds, &truths)?;
     for (k, row) in rows.iter_mut().enumerate() {
-        (row.miou2d, row.accuracy2d) = mean_2d(&conf, 2 * k);
+        // Probes per object: stroke, NVOS-style, ceiling.
+        (row.miou2d, row.accuracy2d) = mean_2d(&conf, 3 * k);
+        row.ceiling2d = mean_2d(&conf, 3 * k + 2).0;
         // NVOS target: the held-out view where the object is largest.
-        let area = |v: &Vec<Confusion>| v[2 * k].tp + v[2 * k].fn_;
+        let area = |v: &Vec<Confusion>| v[3 * k].tp + v[3 * k].fn_;
         if let Some(best) = (0..conf.len()).max_by_key(|&v| (area(&conf[v]), std::cmp::Reverse(v))) {
-            row.nvos_iou = conf[best][2 * k + 1].iou();
+            row.nvos_iou = conf[best][3 * k + 1].iou();
             row.nvos_view = view_names.get(best).cloned().unwrap_or_default();
         }
     }
@@ -687,7 +712,9 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
         let train = capture_cameras(&scene, cfg.views, cfg.factor());
         let val = held_out_cameras(&scene, cfg.factor());
         let key = capture_key(cfg, name);
-        let dir = root.join("captures").join(format!("{name}-{:016x}", fnv(key.as_bytes())));
+        let dir = root
+            .join("captures")
+            .join(format!("{name}-{:016x}", fnv(key.as_bytes())));
         let t0 = Instant::now();
         if ensure_capture(&scene, &train, &val, &dir, &key)? {
             eprintln!(
@@ -760,6 +787,7 @@ pub fn object_table(r: &QualityReport) -> Table {
         "3D IoU (σ>0)",
         "2D mIoU",
         "accuracy",
+        "2D ceiling",
         "NVOS IoU",
         "seconds",
     ]);
@@ -774,6 +802,7 @@ pub fn object_table(r: &QualityReport) -> Table {
             f3(o.iou3d_dense),
             f3(o.miou2d),
             f3(o.accuracy2d),
+            f3(o.ceiling2d),
             f3(o.nvos_iou),
             format!("{:.2}", o.seconds),
         ]);
@@ -797,6 +826,7 @@ pub fn object_table(r: &QualityReport) -> Table {
             f3(agg(|o| o.iou3d_dense)),
             f3(agg(|o| o.miou2d)),
             f3(agg(|o| o.accuracy2d)),
+            f3(agg(|o| o.ceiling2d)),
             f3(agg(|o| o.nvos_iou)),
             format!("{:.2}", agg(|o| o.seconds)),
         ]);
@@ -851,13 +881,17 @@ mod tests {
     #[test]
     fn resampled_iou_is_one_for_the_truth_and_lower_when_shifted() {
         let s = demo::build("tabletop", 32, 0).unwrap();
-        let r = Resampled::new(&s.field, &s.field, &s.labels).unwrap();
+        let r = Resampled::new(&s.field, OCCUPIED_FLOOR, &s.field, &s.labels).unwrap();
         let ball = s.labels.label_of("ball").unwrap();
         let perfect = s.labels.mask(ball);
-        let (iou, dense) = r.iou(&perfect, ball).unwrap();
+        let (iou, dense, n) = r.iou(&perfect, ball).unwrap();
         assert_eq!((iou, dense), (1.0, 1.0));
-        assert_eq!(r.truth(ball).intersection_count(&perfect).unwrap(), r.truth(ball).count());
-        let (iou, dense) = r.iou(&shifted(&perfect), ball).unwrap();
+        assert_eq!(n, r.truth(ball).count());
+        assert_eq!(
+            r.truth(ball).intersection_count(&perfect).unwrap(),
+            r.truth(ball).count()
+        );
+        let (iou, dense, _) = r.iou(&shifted(&perfect), ball).unwrap();
         assert!(iou < 0.9 && iou > 0.1, "shifted by one voxel: {iou}");
         assert!(dense < 0.9, "{dense}");
         let wrong = Bitmap::new([8, 8, 8]);
@@ -869,9 +903,9 @@ mod tests {
         // The same scene on a finer grid: its voxels take the coarse labels.
         let coarse = demo::build("tabletop", 32, 0).unwrap();
         let fine = demo::build("tabletop", 48, 0).unwrap();
-        let r = Resampled::new(&fine.field, &coarse.field, &coarse.labels).unwrap();
+        let r = Resampled::new(&fine.field, visible_floor(&fine.field), &coarse.field, &coarse.labels).unwrap();
         let ball = coarse.labels.label_of("ball").unwrap();
-        let (iou, _) = r.iou(&fine.labels.mask(ball), ball).unwrap();
+        let (iou, _, _) = r.iou(&fine.labels.mask(ball), ball).unwrap();
         assert!(iou > 0.6 && iou < 1.0, "{iou}");
     }
 
@@ -895,7 +929,10 @@ mod tests {
         };
         assert_ne!(key, capture_key(&other, "tabletop"));
         assert_ne!(key, capture_key(&cfg, "shelf"));
-        assert_ne!(cache_paths(Path::new("/c"), &a), cache_paths(Path::new("/c"), &field_key(&key, &more, "t", 1)));
+        assert_ne!(
+            cache_paths(Path::new("/c"), &a),
+            cache_paths(Path::new("/c"), &field_key(&key, &more, "t", 1))
+        );
     }
 
     #[test]
