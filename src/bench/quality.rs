@@ -545,13 +545,14 @@ fn box_gap(a: &Aabb, b: &Aabb) -> f32 {
 /// Labels of the `n` objects nearest to `label` (by bounding-box gap) among
 /// `candidates`.
 pub fn nearest_objects(boxes: &[Option<Aabb>], label: u8, candidates: &[u8], n: usize) -> Vec<u8> {
-    let Some(Some(own)) = boxes.get(label as usize - 1) else {
+    let of = |l: u8| (l as usize).checked_sub(1).and_then(|i| boxes.get(i)?.as_ref());
+    let Some(own) = of(label) else {
         return vec![];
     };
     let mut near: Vec<(f32, u8)> = candidates
         .iter()
         .filter(|&&c| c != label)
-        .filter_map(|&c| boxes.get(c as usize - 1)?.as_ref().map(|b| (box_gap(own, b), c)))
+        .filter_map(|&c| of(c).map(|b| (box_gap(own, b), c)))
         .collect();
     near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     near.into_iter().take(n).map(|(_, c)| c).collect()
@@ -984,5 +985,6 @@ mod tests {
         let near = nearest_objects(&boxes, l("mug"), &all, 2);
         assert!(near.contains(&l("box")) && near.contains(&l("table")), "{near:?}");
         assert!(nearest_objects(&boxes, l("ball"), &all, 1) == vec![l("floor")]);
+        assert!(nearest_objects(&boxes, 0, &all, 2).is_empty(), "label 0 is no object");
     }
 }

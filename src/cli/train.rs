@@ -49,7 +49,7 @@ pub struct Args {
     #[arg(long)]
     pub teacher_size: Option<u32>,
     /// Teacher feature channels kept by PCA (the paper keeps 64).
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = isrf::train::DEFAULT_FEATURE_DIMS)]
     pub feature_dims: usize,
     /// Recompute teacher features instead of using the cache
     /// ($ISRF_CACHE, $XDG_CACHE_HOME/isrf or ~/.cache/isrf).
@@ -68,7 +68,7 @@ pub struct Args {
     #[arg(long, requires = "resume")]
     pub redistill: bool,
     /// Grid points along the longest side of the distilled feature grid
-    /// (default 64).
+    /// (default 128).
     #[arg(long)]
     pub feature_res: Option<usize>,
     /// Checkpoint file (default: next to --out, `<name>.ckpt.safetensors`).
@@ -198,7 +198,9 @@ fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig
     if let Some(r) = a.feature_res {
         c.feature_res = r;
     }
-    c.feature_iters = a.feature_iters.unwrap_or(if teacher { 1500 } else { 0 });
+    c.feature_iters = a
+        .feature_iters
+        .unwrap_or(if teacher { isrf::train::DEFAULT_FEATURE_ITERS } else { 0 });
     c.validate()?;
     Ok(c)
 }
