@@ -443,3 +443,58 @@ fn growth_asked_for_on_its_own_is_bounded_by_the_mask_itself() {
     assert_eq!(mask, left);
     assert!(isrf::segment::mask_bound(&cache, &mask, &SegmentParams::paper()).is_none());
 }
+
+/// A slab (x < 0) whose features turn from angle 0 to 45°, touching (with
+/// `block`) a larger block (x > 0) at a fixed 72°.
+fn slab_and_block(res: usize, block: bool) -> Field {
+    let feat = |p: Vec3, out: &mut [f32]| {
+        let a = if p.x <= 0.0 {
+            (p.x + 0.9) / 0.9 * std::f32::consts::FRAC_PI_4
+        } else {
+            0.4 * std::f32::consts::PI
+        };
+        out.fill(0.0);
+        out[0] = 2.0 * a.cos();
+        out[1] = 2.0 * a.sin();
+    };
+    FieldBuilder::new(unit_box(), [res; 3]).build(
+        move |p| {
+            let slab = p.x > -0.9 && p.x <= 0.0 && p.y.abs() < 0.2 && p.z.abs() < 0.2;
+            let big = block && p.x > 0.0 && p.x < 0.9 && p.y.abs() < 0.7 && p.z.abs() < 0.7;
+            if slab || big {
+                60.0
+            } else {
+                0.0
+            }
+        },
+        |_| Vec3::ONE,
+        Some((3, &feat)),
+    )
+}
+
+#[test]
+fn stable_growth_takes_an_isolated_object_whole_and_stops_at_a_touching_one() {
+    use isrf::segment::stable::{stable_region, StableParams};
+    let centre = Centroids {
+        dim: 3,
+        data: vec![1.0, 0.0, 0.0],
+    };
+    let p = SegmentParams::default();
+    for block in [false, true] {
+        let f = slab_and_block(30, block);
+        let g = f.geom();
+        let cache = f.feature_cache().unwrap();
+        let floor = p.sigma_floor(g.spacing().min_element());
+        let seed = nnfm_seed(&cache, &centre, p.theta, floor);
+        let slab = Bitmap::from_fn(g.res, |v| g.point_of(v).x <= 0.0 && f.density.sigma_at(v) > floor);
+        assert!(
+            seed.count() > 0 && seed.count() < slab.count(),
+            "the seed misses the slab's far end"
+        );
+        let s = stable_region(&cache, &centre, &seed, p.theta, floor, &StableParams::default());
+        assert_eq!(s.region, slab, "block {block}: threshold {}", s.threshold);
+        // 2 − 2 cos 45° ≈ 0.59 is the slab's farthest feature, 2 − 2 cos 72°
+        // ≈ 1.38 the block's.
+        assert!(s.threshold > 0.59 && s.threshold < 1.38, "{}", s.threshold);
+    }
+}

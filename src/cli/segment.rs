@@ -13,10 +13,12 @@ use std::sync::Arc;
 /// `--growth` rule's defaults (`isrf segment --help` shows them).
 #[derive(clap::Args, Clone, Debug)]
 pub struct ParamArgs {
-    /// Growth rule: `bounded` (the default: unit features, NNFM hysteresis,
-    /// solid voxels only) or `paper` (the paper's rule and defaults, for
-    /// ablations).
-    #[arg(long, default_value = "bounded")]
+    /// Growth rule: `stable` (the default: seeds grown through solid voxels
+    /// that still match the stroke, up to the threshold where the region is
+    /// most stable), `bounded` (bilateral steps on unit features with a fixed
+    /// threshold --theta-grow) or `paper` (the paper's rule and defaults,
+    /// for ablations).
+    #[arg(long, default_value = "stable")]
     pub growth: GrowthRule,
     /// K-means clusters over the stroke features (1 = average matching)
     /// [default: 10].
@@ -61,10 +63,7 @@ pub fn parse_growth(s: &str) -> Result<Growth, String> {
 
 impl ParamArgs {
     pub fn params(&self) -> Result<SegmentParams> {
-        let mut p = match self.growth {
-            GrowthRule::Bounded => SegmentParams::default(),
-            GrowthRule::Paper => SegmentParams::paper(),
-        };
+        let mut p = SegmentParams::for_rule(self.growth);
         p.k = self.k.unwrap_or(p.k);
         p.theta = self.theta.unwrap_or(p.theta);
         p.growth = self.grow.unwrap_or(p.growth);
@@ -134,9 +133,14 @@ pub fn run(a: Args) -> Result<()> {
         let (region, t) = region_from_stroke(&scene, &cache, s, &params)
             .map_err(|e| anyhow::anyhow!("stroke {i} ('{}'): {e}", s.object))?;
         apply_region(&mut mask, &region, s.polarity)?;
+        let growth = if t.threshold > 0.0 {
+            format!("stable region at threshold {:.2}", t.threshold)
+        } else {
+            format!("{} steps", t.grow_steps)
+        };
         println!(
-            "stroke {i} ({:?}, '{}', {} px): features {:.1} ms, k-means {:.1} ms, nnfm {:.1} ms ({} seeds), growth {:.1} ms ({} steps) -> {} voxels; total {:.1} ms",
-            s.polarity, s.object, t.stroke_pixels, t.stroke_features_ms, t.kmeans_ms, t.nnfm_ms, t.seed_voxels, t.grow_ms, t.grow_steps, t.region_voxels, t.total_ms()
+            "stroke {i} ({:?}, '{}', {} px): features {:.1} ms, k-means {:.1} ms, nnfm {:.1} ms ({} seeds), growth {:.1} ms ({growth}) -> {} voxels; total {:.1} ms",
+            s.polarity, s.object, t.stroke_pixels, t.stroke_features_ms, t.kmeans_ms, t.nnfm_ms, t.seed_voxels, t.grow_ms, t.region_voxels, t.total_ms()
         );
     }
     let name = a.object.clone().unwrap_or_else(|| strokes[0].object.clone());

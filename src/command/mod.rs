@@ -356,11 +356,9 @@ impl Command {
             solid_alpha,
         } = self
         {
-            p = match rule {
-                Some(crate::segment::GrowthRule::Paper) => crate::segment::SegmentParams::paper(),
-                Some(crate::segment::GrowthRule::Bounded) => crate::segment::SegmentParams::default(),
-                None => p,
-            };
+            if let Some(r) = rule {
+                p = crate::segment::SegmentParams::for_rule(*r);
+            }
             p.grow.theta_grow = theta_grow.unwrap_or(p.grow.theta_grow);
             p.solid_alpha = solid_alpha.unwrap_or(p.solid_alpha);
             p.k = k.unwrap_or(p.k);

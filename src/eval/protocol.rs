@@ -293,10 +293,18 @@ pub fn evaluate_nvos(
     target: Option<&str>,
     params: &SegmentParams,
 ) -> Result<NvosReport> {
-    let ref_dir = root.join("reference_image").join(scene_name);
-    let ref_img = list_files(&ref_dir, "", "")?.into_iter().next();
-    let ref_img = ref_img.ok_or_else(|| Error::invalid(format!("{}: no reference image", ref_dir.display())))?;
-    let ref_stem = ref_img.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+    // The reference view is named by --reference-view or by the one file in
+    // reference_image/<scene>/ (the image itself is not needed).
+    let ref_stem = match reference {
+        Some(r) => r.to_string(),
+        None => {
+            let ref_dir = root.join("reference_image").join(scene_name);
+            let ref_img = list_files(&ref_dir, "", "")?.into_iter().next();
+            let ref_img =
+                ref_img.ok_or_else(|| Error::invalid(format!("{}: no reference image", ref_dir.display())))?;
+            ref_img.file_stem().unwrap_or_default().to_string_lossy().into_owned()
+        }
+    };
     let mask_path = list_files(&root.join("masks").join(scene_name), "", "_mask.png")?
         .into_iter()
         .next()
@@ -307,7 +315,7 @@ pub fn evaluate_nvos(
         .to_string_lossy()
         .trim_end_matches("_mask.png")
         .to_string();
-    let ref_cam = frame_camera(cams, reference.unwrap_or(&ref_stem))?;
+    let ref_cam = frame_camera(cams, &ref_stem)?;
     let target_cam = frame_camera(cams, target.unwrap_or(&target_stem))?;
     let scrib = root.join("scribbles").join(scene_name);
     let pos = list_files(&scrib, "pos", ".png")?;

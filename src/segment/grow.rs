@@ -40,8 +40,12 @@ pub enum GrowthRule {
     /// The paper's rule on raw features (for the ablation).
     Paper,
     /// Unit features, NNFM hysteresis and a solidity floor.
-    #[default]
     Bounded,
+    /// Seeds grown to the region most stable under the hysteresis
+    /// threshold ([`super::stable`]); grow steps on their own (the editor's
+    /// grow button) use the bounded rule.
+    #[default]
+    Stable,
 }
 
 impl std::str::FromStr for GrowthRule {
@@ -50,7 +54,8 @@ impl std::str::FromStr for GrowthRule {
         match s {
             "paper" => Ok(GrowthRule::Paper),
             "bounded" => Ok(GrowthRule::Bounded),
-            _ => Err(format!("unknown growth rule '{s}' (paper or bounded)")),
+            "stable" => Ok(GrowthRule::Stable),
+            _ => Err(format!("unknown growth rule '{s}' (stable, bounded or paper)")),
         }
     }
 }
@@ -73,7 +78,7 @@ impl Default for GrowParams {
             sigma_f: 0.2,
             sigma_s: 1.0,
             tau: 0.1,
-            rule: GrowthRule::Bounded,
+            rule: GrowthRule::Stable,
             theta_grow: 0.8,
         }
     }
@@ -264,7 +269,7 @@ fn decide(
         return None;
     }
     let rc = cache.index.slot(v)?;
-    let unit = p.rule == GrowthRule::Bounded;
+    let unit = p.rule != GrowthRule::Paper;
     if unit && bound.is_some_and(|b| cache.sigma[rc] <= b.floor) {
         return None;
     }

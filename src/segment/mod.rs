@@ -8,6 +8,7 @@ pub mod dense;
 pub mod grow;
 pub mod kmeans;
 pub mod nnfm;
+pub mod stable;
 pub mod stroke;
 
 pub use grow::{grow_step_dense, Bound, GrowParams, Grower, GrowthRule};
@@ -51,7 +52,9 @@ pub struct SegmentParams {
     pub growth: Growth,
     /// Voxels need σ above this to be seeds.
     pub seed_floor: f32,
-    /// Bounded rule: seeds and grown voxels must be solid, i.e. stop at
+    /// Stable rule: where to look for the most stable region.
+    pub stable: stable::StableParams,
+    /// Bounded and stable rules: seeds and grown voxels must be solid, i.e. stop at
     /// least this fraction of the light over one voxel (1 − exp(−σ·h), h
     /// the voxel size): the haze of a real capture has features that match
     /// anything and must not carry the selection.
@@ -71,6 +74,7 @@ impl Default for SegmentParams {
             growth: Growth::Converge,
             seed_floor: 0.1,
             solid_alpha: 0.02,
+            stable: stable::StableParams::default(),
             min_stroke_opacity: 0.5,
             kmeans_seed: 0,
             kmeans_iters: 50,
@@ -86,6 +90,18 @@ impl SegmentParams {
             grow: GrowParams::paper(),
             solid_alpha: 0.0,
             ..Default::default()
+        }
+    }
+
+    /// The defaults of a growth rule.
+    pub fn for_rule(rule: GrowthRule) -> Self {
+        match rule {
+            GrowthRule::Paper => Self::paper(),
+            r => {
+                let mut p = Self::default();
+                p.grow.rule = r;
+                p
+            }
         }
     }
 
@@ -158,6 +174,8 @@ pub struct Timings {
     pub stroke_pixels: usize,
     pub seed_voxels: usize,
     pub region_voxels: usize,
+    /// Stable rule: the hysteresis threshold it chose (0 otherwise).
+    pub threshold: f32,
 }
 
 impl Timings {
@@ -190,14 +208,22 @@ pub fn region_from_features(
     let t0 = Instant::now();
     let floor = match p.grow.rule {
         GrowthRule::Paper => p.seed_floor,
-        GrowthRule::Bounded => p.sigma_floor(cache.geom.spacing().min_element()),
+        _ => p.sigma_floor(cache.geom.spacing().min_element()),
     };
     let mut region = nnfm_seed(cache, &centres, p.theta, floor);
     t.nnfm_ms = ms_since(t0);
     t.seed_voxels = region.count();
     let t0 = Instant::now();
+    if p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0) {
+        let s = stable::stable_region(cache, &centres, &region, p.theta, floor, &p.stable);
+        t.grow_ms = ms_since(t0);
+        t.grow_steps = 1;
+        t.threshold = s.threshold;
+        t.region_voxels = s.region.count();
+        return Ok(s.region);
+    }
     let mut g = Grower::new(cache, p.grow);
-    if p.grow.rule == GrowthRule::Bounded {
+    if p.grow.rule != GrowthRule::Paper {
         g = g.with_bound(Bound::new(centres, p.grow.theta_grow.max(p.theta), floor));
     }
     t.grow_steps = g.grow(&mut region, p.growth, MAX_GROW_STEPS, |_| ());
@@ -209,9 +235,10 @@ pub fn region_from_features(
 /// The bound of a `Bounded` growth step asked for on its own (the editor's
 /// "grow" button, the `grow` command): grown voxels must look like what the
 /// mask already holds, i.e. match K-means centres of its unit features.
-/// `None` for the paper's rule, which is unbounded.
+/// `None` for the paper's rule, which is unbounded. (The stable rule's steps
+/// on their own are bounded steps too.)
 pub fn mask_bound(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Option<Bound> {
-    if p.grow.rule != GrowthRule::Bounded {
+    if p.grow.rule == GrowthRule::Paper {
         return None;
     }
     // A strided sample keeps K-means cheap on large masks.

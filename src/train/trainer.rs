@@ -125,7 +125,7 @@ impl Default for TrainConfig {
             bounds: None,
             seed: 0,
             feature_iters: 0,
-            feature_res: 64,
+            feature_res: 128,
             feature_lambda: 1e-3,
             freeze_geometry: false,
             appearance: AppearanceKind::Sh,

@@ -427,7 +427,11 @@ fn tools_panel(
     let mut rule = None;
     ui.horizontal(|ui| {
         ui.label("growth rule");
-        for (r, name) in [(GrowthRule::Bounded, "bounded"), (GrowthRule::Paper, "paper")] {
+        for (r, name) in [
+            (GrowthRule::Stable, "stable"),
+            (GrowthRule::Bounded, "bounded"),
+            (GrowthRule::Paper, "paper"),
+        ] {
             if ui.selectable_label(p.grow.rule == r, name).clicked() && p.grow.rule != r {
                 rule = Some(r);
             }
@@ -442,7 +446,7 @@ fn tools_panel(
                 .text("σ_φ"),
         ),
     );
-    if p.grow.rule == GrowthRule::Bounded {
+    if p.grow.rule != GrowthRule::Paper {
         commit |= committed(&ui.add(egui::Slider::new(&mut p.grow.theta_grow, 0.01..=4.0).text("θ grow")));
         commit |= committed(
             &ui.add(
@@ -463,10 +467,7 @@ fn tools_panel(
     ui.checkbox(&mut state.live, "live: redo the last stroke with new values");
     if let Some(r) = rule {
         // A rule change resets the sliders to that rule's defaults.
-        state.params = match r {
-            GrowthRule::Paper => SegmentParams::paper(),
-            GrowthRule::Bounded => SegmentParams::default(),
-        };
+        state.params = SegmentParams::for_rule(r);
         commit = true;
     }
     if commit && state.params != es.state.params {
