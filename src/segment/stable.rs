@@ -42,6 +42,8 @@ pub struct StableParams {
     pub step: f32,
     /// Largest relative growth over ±δ that still counts as stable.
     pub max_growth: f32,
+    /// A relative growth over ±δ above this is a flood into another object.
+    pub flood_growth: f32,
 }
 
 impl Default for StableParams {
@@ -51,6 +53,7 @@ impl Default for StableParams {
             delta: 0.1,
             step: 0.02,
             max_growth: 0.02,
+            flood_growth: 0.25,
         }
     }
 }
@@ -157,6 +160,9 @@ pub fn stable_threshold(keys: &[f32], theta: f32, p: &StableParams) -> f32 {
     let mut t = lo;
     while t <= hi + 1e-6 {
         let growth = (count(t + p.delta) - count(t - p.delta)) / count(t).max(1.0);
+        if growth > p.flood_growth {
+            break;
+        }
         // Strictly smaller only: ties keep the smallest threshold.
         if growth < best.0 - 1e-4 {
             best = (growth, t);
@@ -211,6 +217,12 @@ mod tests {
         let keys: Vec<f32> = (0..1000).map(|i| 1.1 * i as f32 / 1000.0).collect();
         let t = stable_threshold(&keys, 0.4, &StableParams::default());
         assert!(t > 1.1 && t < 1.25, "{t}");
+        // An object (to 0.6), a flood into the rest (at 1.0, 10× its size),
+        // then nothing more: the plateau after the flood is not chosen.
+        let mut keys: Vec<f32> = (0..1000).map(|i| 0.6 * i as f32 / 1000.0).collect();
+        keys.extend((0..10_000).map(|i| 1.0 + 0.05 * i as f32 / 10_000.0));
+        let t = stable_threshold(&keys, 0.4, &StableParams::default());
+        assert!(t > 0.6 && t < 1.0, "{t}");
         // A steady creep (3 % per 0.1) has no stable boundary: seeds only.
         let mut keys = vec![0.0f32; 10_000];
         let mut n = 10_000.0f32;
