@@ -510,3 +510,62 @@ fn commands_report_progress_and_clear_it() {
     assert!(s.apply(&stroke("x", "nope", "pot")).is_err());
     assert!(s.progress.get().is_none());
 }
+
+#[test]
+fn script_strokes_may_name_a_view_of_the_fields_capture() {
+    // A field file with `isrf train`'s `<stem>.cameras.json` beside it; a
+    // stroke file names one of its views instead of spelling the camera out.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = isrf::demo::build("tabletop", RES, 0).unwrap();
+    scene.field.save(&dir.path().join("room.safetensors")).unwrap();
+    let frame = isrf::camera::CameraFrame {
+        name: "./views/stroke_view".into(),
+        camera: scene.stroke_camera,
+    };
+    isrf::camera::CameraSet { frames: vec![frame] }
+        .save(&dir.path().join("room.cameras.json"))
+        .unwrap();
+    let pot = scene.object("pot").unwrap();
+    let points: Vec<[f32; 2]> = pot
+        .stroke
+        .iter()
+        .filter_map(|&p| isrf::demo::strokes::pixel_of(&scene.stroke_camera, p))
+        .map(|p| [p[0] as f32 + 0.5, p[1] as f32 + 0.5])
+        .collect();
+    let doc = serde_json::json!({
+        "object": "pot", "radius": isrf::demo::STROKE_RADIUS,
+        "points": points, "camera": {"file_path": "stroke_view"}
+    });
+    std::fs::write(dir.path().join("pot.json"), doc.to_string()).unwrap();
+    let script = Script {
+        commands: vec![
+            Command::LoadField {
+                name: "room".into(),
+                source: FieldSource::File("room.safetensors".into()),
+                transform: None,
+            },
+            Command::Stroke {
+                object: "pot".into(),
+                field: None,
+                polarity: None,
+                source: StrokeSource::File("pot.json".into()),
+            },
+        ],
+    };
+    validate_script(&script, dir.path()).unwrap();
+    let mut named = Session::new(dir.path(), dir.path());
+    for c in &script.commands {
+        named.apply(c).unwrap();
+    }
+    // The same object as the demo's built-in stroke on the same camera.
+    let builtin = tabletop_with_pot();
+    let mask = |s: &Session| s.object("pot").unwrap().mask.clone();
+    assert!(mask(&named).count() > 0);
+    assert_eq!(*mask(&named), *mask(&builtin));
+    // Without the cameras file the view cannot be found: a clear error.
+    std::fs::remove_file(dir.path().join("room.cameras.json")).unwrap();
+    let mut bare = Session::new(dir.path(), dir.path());
+    bare.apply(&script.commands[0]).unwrap();
+    let e = bare.apply(&script.commands[1]).unwrap_err().to_string();
+    assert!(e.contains("transform_matrix"), "{e}");
+}

@@ -81,6 +81,28 @@ struct JsonFrameOut {
 }
 
 /// Rows of a 4×4 matrix (JSON `transform_matrix` is row-major).
+/// Where the cameras of the capture a field file was trained on may be:
+/// `isrf train`'s `<stem>.cameras.json` beside it, else a `transforms.json`
+/// in its folder (in that order).
+pub fn capture_camera_files(field: &Path) -> Vec<std::path::PathBuf> {
+    let name = field
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
+    let mut out = vec![field.with_file_name(format!("{stem}.cameras.json"))];
+    out.extend(field.parent().map(|d| d.join("transforms.json")));
+    out
+}
+
+/// The first readable camera set of [`capture_camera_files`].
+pub fn capture_cameras(field: &Path) -> Option<CameraSet> {
+    capture_camera_files(field)
+        .into_iter()
+        .filter(|t| t.exists())
+        .find_map(|t| CameraSet::load(&t).ok())
+}
+
 pub fn affine_to_rows(a: &Affine3A) -> [[f32; 4]; 4] {
     let m = Mat4::from(*a).transpose();
     [

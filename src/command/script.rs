@@ -238,7 +238,7 @@ fn check_step(
                 }
                 StrokeSource::File(p) => {
                     let full = if p.is_absolute() { p.clone() } else { base.join(p) };
-                    crate::segment::load_strokes(&full)?;
+                    crate::segment::stroke::check_strokes(&full)?;
                 }
                 StrokeSource::Scribble { path, camera } => {
                     exists(base, path)?;

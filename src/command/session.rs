@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 use crate::field::{Bitmap, Field};
 use crate::render::{render, save_png, to_rgb8, ColorEdit, Layer, Probe, RenderOptions, Scene};
 use crate::segment::{
-    apply_region, load_strokes, mask_bound, region_from_stroke, scribble_stroke, Grower, Growth, Polarity,
+    apply_region, load_strokes_on, mask_bound, region_from_stroke, scribble_stroke, Grower, Growth, Polarity,
     SegmentParams, Stroke, Timings, MAX_GROW_STEPS,
 };
 use crate::util::Progress;
@@ -334,7 +334,22 @@ impl Session {
     fn strokes_of(&self, f: &FieldEntry, object: &str, source: &StrokeSource) -> Result<Vec<Stroke>> {
         Ok(match source {
             StrokeSource::Inline(doc) => vec![doc.to_stroke()?],
-            StrokeSource::File(p) => load_strokes(&self.resolve(p))?,
+            // Strokes may name a view (`"camera": {"file_path": "image012"}`)
+            // of the capture the field was trained on.
+            StrokeSource::File(p) => {
+                let cams = match &f.source {
+                    FieldSource::File(fp) => crate::camera::set::capture_cameras(&self.resolve(fp)),
+                    FieldSource::Demo { .. } => None,
+                };
+                let mut strokes = load_strokes_on(&self.resolve(p), cams.as_ref())?;
+                // The capture's cameras are in the field's frame: follow it.
+                for s in &mut strokes {
+                    if cams.is_some() {
+                        s.camera.c2w = f.transform * s.camera.c2w;
+                    }
+                }
+                strokes
+            }
             StrokeSource::Scribble { path, camera } => {
                 vec![scribble_stroke(
                     &self.resolve(path),

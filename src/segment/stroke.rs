@@ -314,6 +314,36 @@ pub fn parse_strokes_on(text: &str, cameras: Option<&CameraSet>) -> Result<Vec<S
         .collect()
 }
 
+/// Checks a stroke file without the cameras its strokes may name (a script's
+/// dry run): everything is checked except that named views exist, which
+/// only the field's capture cameras can tell at run time.
+pub fn check_strokes(path: &Path) -> Result<()> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let docs = match serde_json::from_str::<StrokeFile>(&text) {
+        Ok(StrokeFile::One(d)) => vec![d],
+        Ok(StrokeFile::Many(v)) | Ok(StrokeFile::Wrapped { strokes: v }) => v,
+        Err(_) => {
+            return parse_strokes(&text)
+                .map(|_| ())
+                .map_err(|e| Error::bad_file(path, e.to_string()))
+        }
+    };
+    let bad = |i: usize, e: Error| Error::bad_file(path, format!("stroke {i}: {e}"));
+    ensure!(
+        !docs.is_empty(),
+        "{}: the stroke document holds no strokes",
+        path.display()
+    );
+    for (i, d) in docs.iter().enumerate() {
+        if d.camera.transform_matrix.is_none() && d.camera.file_path.is_some() {
+            ensure!(!d.points.is_empty(), "{}: stroke {i} has no points", path.display());
+        } else {
+            d.to_stroke().map_err(|e| bad(i, e))?;
+        }
+    }
+    Ok(())
+}
+
 /// The camera of the frame of `set` that `doc.file_path` names (full name
 /// or base name); the document's `w`/`h`, if given, must match it.
 fn frame_camera(set: &CameraSet, doc: &CameraDoc) -> Result<Camera> {

@@ -265,11 +265,7 @@ pub fn sync_entities(
                     // transforms.json beside the file. Forward-facing
                     // captures' cameras see the field through NDC, which a
                     // pinhole view cannot show, so only plain ones count.
-                    let set = capture_camera_files(p)
-                        .into_iter()
-                        .filter(|t| t.exists())
-                        .find_map(|t| crate::camera::CameraSet::load(&t).ok());
-                    if let Some(set) = set {
+                    if let Some(set) = crate::camera::set::capture_cameras(p) {
                         state
                             .capture_cameras
                             .extend(set.frames.into_iter().filter(|c| c.camera.ndc.is_none()).map(|c| {
@@ -336,17 +332,4 @@ pub fn sync_entities(
     if state.background != st.background {
         state.background = st.background;
     }
-}
-
-/// Camera files that may hold a field file's capture views, best first:
-/// `isrf train`'s `<stem>.cameras.json`, then `transforms.json` beside it.
-fn capture_camera_files(field: &std::path::Path) -> Vec<std::path::PathBuf> {
-    let name = field
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let stem = name.strip_suffix(".safetensors").unwrap_or(&name);
-    let mut out = vec![field.with_file_name(format!("{stem}.cameras.json"))];
-    out.extend(field.parent().map(|d| d.join("transforms.json")));
-    out
 }
