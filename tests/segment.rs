@@ -498,3 +498,30 @@ fn stable_growth_takes_an_isolated_object_whole_and_stops_at_a_touching_one() {
         assert!(s.threshold > 0.59 && s.threshold < 1.38, "{}", s.threshold);
     }
 }
+
+#[test]
+fn stroke_centres_leave_out_the_rim_of_a_stroke() {
+    // 90 stroke features around direction A, 10 (the rim, blended with a
+    // neighbour) at direction B.
+    let mut feats = vec![];
+    for i in 0..100 {
+        let f = if i % 10 == 3 {
+            [0.0, 1.0, 0.0]
+        } else {
+            let a = 0.05 * (i as f32 / 100.0 - 0.5);
+            [a.cos(), 0.0, a.sin()]
+        };
+        feats.extend(f);
+    }
+    let near_b = |c: &Centroids| (0..c.len()).any(|k| c.row(k)[1] > 0.5);
+    let all = SegmentParams {
+        stroke_keep: 1.0,
+        ..Default::default()
+    };
+    assert!(
+        near_b(&isrf::segment::stroke_centres(&feats, 3, &all)),
+        "K-means alone keeps the rim"
+    );
+    let trimmed = isrf::segment::stroke_centres(&feats, 3, &SegmentParams::default());
+    assert!(!trimmed.is_empty() && !near_b(&trimmed), "the default drops it");
+}

@@ -97,7 +97,7 @@ pub struct SegmentBenchReport {
     /// The library's own `region_from_stroke`, end to end (median).
     pub pipeline_ms: f64,
     pub pipeline_matches: bool,
-    /// `region_from_stroke` with the default (bounded) rule, end to end
+    /// `region_from_stroke` with the default rule, end to end
     /// (median), and the voxels it selects.
     pub default_ms: f64,
     pub default_voxels: usize,
@@ -465,7 +465,7 @@ pub fn summary(r: &SegmentBenchReport) -> Vec<String> {
             if r.pipeline_matches { "yes" } else { "no" }
         ),
         format!(
-            "stroke to mask with the default (bounded) rule: {:.2} ms, {} voxels",
+            "stroke to mask with the default rule (stable growth): {:.2} ms, {} voxels",
             r.default_ms, r.default_voxels
         ),
     ];

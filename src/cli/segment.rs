@@ -41,6 +41,10 @@ pub struct ParamArgs {
     /// Growth threshold τ [default: 0.1].
     #[arg(long)]
     pub tau: Option<f32>,
+    /// Fraction of the stroke's features, the closest to their mean, that
+    /// K-means clusters [default: 0.8; paper 1].
+    #[arg(long)]
+    pub stroke_keep: Option<f32>,
     /// Bounded rule: grown voxels need an NNFM distance below this
     /// [default: 0.8].
     #[arg(long)]
@@ -68,6 +72,7 @@ impl ParamArgs {
         p.theta = self.theta.unwrap_or(p.theta);
         p.growth = self.grow.unwrap_or(p.growth);
         p.solid_alpha = self.solid_alpha.unwrap_or(p.solid_alpha);
+        p.stroke_keep = self.stroke_keep.unwrap_or(p.stroke_keep);
         let g = &mut p.grow;
         g.sigma_f = self.sigma_f.unwrap_or(g.sigma_f);
         g.sigma_s = self.sigma_s.unwrap_or(g.sigma_s);

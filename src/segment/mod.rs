@@ -52,6 +52,9 @@ pub struct SegmentParams {
     pub growth: Growth,
     /// Voxels need σ above this to be seeds.
     pub seed_floor: f32,
+    /// Fraction of the stroke's features (the closest to their mean
+    /// direction) that K-means clusters (1 = all).
+    pub stroke_keep: f32,
     /// Stable rule: where to look for the most stable region.
     pub stable: stable::StableParams,
     /// Bounded and stable rules: seeds and grown voxels must be solid, i.e. stop at
@@ -75,6 +78,7 @@ impl Default for SegmentParams {
             seed_floor: 0.1,
             solid_alpha: 0.02,
             stable: stable::StableParams::default(),
+            stroke_keep: 0.8,
             min_stroke_opacity: 0.5,
             kmeans_seed: 0,
             kmeans_iters: 50,
@@ -89,6 +93,7 @@ impl SegmentParams {
         SegmentParams {
             grow: GrowParams::paper(),
             solid_alpha: 0.0,
+            stroke_keep: 1.0,
             ..Default::default()
         }
     }
@@ -150,6 +155,11 @@ impl SegmentParams {
             "seed floor must be >= 0"
         );
         ensure!(
+            self.stroke_keep > 0.0 && self.stroke_keep <= 1.0,
+            "stroke keep must be in (0, 1], got {}",
+            self.stroke_keep
+        );
+        ensure!(
             self.solid_alpha.is_finite() && (0.0..1.0).contains(&self.solid_alpha),
             "solid alpha must be in [0, 1), got {}",
             self.solid_alpha
@@ -184,9 +194,36 @@ impl Timings {
     }
 }
 
-/// Centres of a set of unit stroke features.
+/// Centres of a set of unit stroke features: K-means over the fraction
+/// `p.stroke_keep` of them closest to their mean direction. A brush on a
+/// small object also covers its rim, where the field's features blend with
+/// the neighbours'; those outliers would become centres that seed the
+/// neighbours.
 pub fn stroke_centres(feats: &[f32], dim: usize, p: &SegmentParams) -> Centroids {
-    kmeans(feats, dim, p.k, p.kmeans_seed, p.kmeans_iters)
+    if dim == 0 || p.stroke_keep >= 1.0 {
+        return kmeans(feats, dim, p.k, p.kmeans_seed, p.kmeans_iters);
+    }
+    let n = feats.len() / dim;
+    let mut mean = vec![0.0f32; dim];
+    for f in feats.chunks_exact(dim) {
+        for (m, &x) in mean.iter_mut().zip(f) {
+            *m += x;
+        }
+    }
+    let dots: Vec<f32> = feats
+        .chunks_exact(dim)
+        .map(|f| f.iter().zip(&mean).map(|(a, b)| a * b).sum())
+        .collect();
+    let keep = ((n as f32 * p.stroke_keep).ceil() as usize).clamp(1, n);
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&a, &b| dots[b].total_cmp(&dots[a]));
+    order.truncate(keep);
+    order.sort_unstable();
+    let kept: Vec<f32> = order
+        .iter()
+        .flat_map(|&i| feats[i * dim..(i + 1) * dim].iter().copied())
+        .collect();
+    kmeans(&kept, dim, p.k, p.kmeans_seed, p.kmeans_iters)
 }
 
 /// The 3D region selected by stroke features: NNFM seed, then growth.
