@@ -29,6 +29,7 @@
 //! same masks as [`grow_step_dense`], which scans the whole grid.
 
 use super::kmeans::Centroids;
+use super::nnfm::CentreSet;
 use super::Growth;
 use crate::field::{Bitmap, FeatureCache};
 use rayon::prelude::*;
@@ -100,35 +101,22 @@ impl GrowParams {
 /// What bounds the `Bounded` rule: the stroke's centres and the floor on σ.
 #[derive(Clone, Debug)]
 pub struct Bound {
-    pub centres: Centroids,
-    norms: Vec<f32>,
+    pub centres: CentreSet,
     pub theta_grow: f32,
     pub floor: f32,
 }
 
 impl Bound {
     pub fn new(centres: Centroids, theta_grow: f32, floor: f32) -> Self {
-        let norms = (0..centres.len())
-            .map(|k| centres.row(k).iter().map(|x| x * x).sum())
-            .collect();
         Bound {
-            centres,
-            norms,
+            centres: CentreSet::new(centres),
             theta_grow,
             floor,
         }
     }
     /// Whether cache row `r` is solid and matches a centre within θ_grow.
     fn admits(&self, cache: &FeatureCache, r: usize) -> bool {
-        if cache.sigma[r] <= self.floor {
-            return false;
-        }
-        let (phi, inv) = (cache.row(r), cache.inv_norm[r]);
-        let self_n = if inv > 0.0 { 1.0 } else { 0.0 };
-        (0..self.centres.len()).any(|k| {
-            let dot: f32 = phi.iter().zip(self.centres.row(k)).map(|(a, b)| a * b).sum();
-            self_n - 2.0 * dot * inv + self.norms[k] < self.theta_grow
-        })
+        cache.sigma[r] > self.floor && self.centres.any_within(cache, r, self.theta_grow)
     }
 }
 

@@ -191,6 +191,40 @@ impl Exact<'_> {
     }
 }
 
+/// Centres with their squared norms, for distances from single cache rows
+/// (growth tests voxels one at a time, as it reaches them).
+#[derive(Clone, Debug)]
+pub struct CentreSet {
+    pub centres: Centroids,
+    norms: Vec<f32>,
+}
+
+impl CentreSet {
+    pub fn new(centres: Centroids) -> Self {
+        let norms = (0..centres.len())
+            .map(|k| centres.row(k).iter().map(|x| x * x).sum())
+            .collect();
+        CentreSet { centres, norms }
+    }
+    /// ‖φ̂ − c_k‖² of cache row `r` for every centre k, as ‖φ̂‖² − 2 φ̂·c + ‖c‖².
+    fn distances<'a>(&'a self, cache: &'a FeatureCache, r: usize) -> impl Iterator<Item = f32> + 'a {
+        let (phi, inv) = (cache.row(r), cache.inv_norm[r]);
+        let self_n = if inv > 0.0 { 1.0 } else { 0.0 };
+        (0..self.centres.len()).map(move |k| {
+            let dot: f32 = phi.iter().zip(self.centres.row(k)).map(|(a, b)| a * b).sum();
+            (self_n - 2.0 * dot * inv + self.norms[k]).max(0.0)
+        })
+    }
+    /// The smallest squared distance (infinity without centres).
+    pub fn min_distance(&self, cache: &FeatureCache, r: usize) -> f32 {
+        self.distances(cache, r).fold(f32::INFINITY, f32::min)
+    }
+    /// Whether some centre is closer than `t` (stops at the first).
+    pub fn any_within(&self, cache: &FeatureCache, r: usize, t: f32) -> bool {
+        self.distances(cache, r).any(|d| d < t)
+    }
+}
+
 /// Minimum squared distance of every cached voxel to the centres (for soft
 /// scores and tests); `f32::INFINITY` below the floor.
 pub fn nnfm_distances(cache: &FeatureCache, centres: &Centroids, floor: f32) -> Vec<f32> {

@@ -25,6 +25,7 @@
 //! d is computed lazily, only for voxels the flood touches.
 
 use super::kmeans::Centroids;
+use super::nnfm::CentreSet;
 use crate::field::{Bitmap, FeatureCache};
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -68,36 +69,10 @@ pub struct StableRegion {
     pub reached: usize,
 }
 
-/// Minimum squared distance between unit feature `r` and the centres.
-struct Distance<'a> {
-    cache: &'a FeatureCache,
-    centres: &'a Centroids,
-    norms: Vec<f32>,
-}
-
-impl<'a> Distance<'a> {
-    fn new(cache: &'a FeatureCache, centres: &'a Centroids) -> Self {
-        let norms = (0..centres.len())
-            .map(|k| centres.row(k).iter().map(|x| x * x).sum())
-            .collect();
-        Distance { cache, centres, norms }
-    }
-    fn at(&self, r: usize) -> f32 {
-        let (phi, inv) = (self.cache.row(r), self.cache.inv_norm[r]);
-        let self_n = if inv > 0.0 { 1.0 } else { 0.0 };
-        (0..self.centres.len())
-            .map(|k| {
-                let dot: f32 = phi.iter().zip(self.centres.row(k)).map(|(a, b)| a * b).sum();
-                (self_n - 2.0 * dot * inv + self.norms[k]).max(0.0)
-            })
-            .fold(f32::INFINITY, f32::min)
-    }
-}
-
 /// Bottleneck distances, in flood order: `(b, voxel)` pairs with
 /// non-decreasing b, every solid voxel with b ≤ `t_max` once.
 fn flood(cache: &FeatureCache, centres: &Centroids, seed: &Bitmap, floor: f32, t_max: f32) -> Vec<(f32, u32)> {
-    let dist = Distance::new(cache, centres);
+    let dist = CentreSet::new(centres.clone());
     let res = cache.geom.res;
     let mut touched = Bitmap::new(res);
     // f32 keys ≥ 0 order like their bits.
@@ -105,7 +80,7 @@ fn flood(cache: &FeatureCache, centres: &Centroids, seed: &Bitmap, floor: f32, t
     for v in seed.ones() {
         if let Some(r) = cache.index.slot(v) {
             touched.set(v, true);
-            heap.push(Reverse((dist.at(r).to_bits(), v as u32)));
+            heap.push(Reverse((dist.min_distance(cache, r).to_bits(), v as u32)));
         }
     }
     let mut order = Vec::new();
@@ -126,7 +101,7 @@ fn flood(cache: &FeatureCache, centres: &Centroids, seed: &Bitmap, floor: f32, t
             touched.set(n, true);
             // Keys never decrease along the flood, so the first touch
             // gives n its bottleneck distance.
-            heap.push(Reverse((b.max(dist.at(r)).to_bits(), n as u32)));
+            heap.push(Reverse((b.max(dist.min_distance(cache, r)).to_bits(), n as u32)));
         });
     }
     order
