@@ -525,3 +525,53 @@ fn stroke_centres_leave_out_the_rim_of_a_stroke() {
     let trimmed = isrf::segment::stroke_centres(&feats, 3, &SegmentParams::default());
     assert!(!trimmed.is_empty() && !near_b(&trimmed), "the default drops it");
 }
+
+#[test]
+fn a_negative_stroke_removes_its_neighbour_not_the_object_it_resembles() {
+    // Two touching boxes whose features are 40° apart (‖Δ‖² ≈ 0.47): with
+    // θ = 0.6 a stroke on either selects both.
+    let a = 40f32.to_radians();
+    let feat = move |p: Vec3, out: &mut [f32]| {
+        let t = if p.x < 0.0 { 0.0 } else { a };
+        out.fill(0.0);
+        out[0] = 5.0 * t.cos();
+        out[1] = 5.0 * t.sin();
+    };
+    let f = Arc::new(FieldBuilder::new(unit_box(), [24; 3]).build(
+        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
+        |_| Vec3::ONE,
+        Some((3, &feat)),
+    ));
+    let cache = f.feature_cache().unwrap();
+    let scene = Scene::single(f.clone());
+    let g = f.geom();
+    let left = Bitmap::from_fn(g.res, |v| g.point_of(v).x < 0.0 && cache.index.slot(v).is_some());
+    let params = SegmentParams {
+        theta: 0.6,
+        growth: Growth::Steps(0),
+        ..Default::default()
+    };
+    let pos = stroke_on(&f, Vec3::new(-0.3, 0.2, 0.6), "left", Polarity::Positive);
+    let neg = stroke_on(&f, Vec3::new(0.3, 0.2, 0.6), "left", Polarity::Negative);
+    let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(g.res));
+    b.stroke(&scene, &cache, &pos, Polarity::Positive, &params).unwrap();
+    assert!(
+        b.mask.count() > left.count(),
+        "the positive stroke leaks into the right box"
+    );
+    b.stroke(&scene, &cache, &neg, Polarity::Negative, &params).unwrap();
+    assert_eq!(
+        b.mask, left,
+        "the negative stroke takes the right box back, and only it"
+    );
+    // Plain subtraction (the paper's rule) empties the mask instead.
+    let paper = SegmentParams {
+        theta: 0.6,
+        growth: Growth::Steps(0),
+        ..SegmentParams::paper()
+    };
+    let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(g.res));
+    b.stroke(&scene, &cache, &pos, Polarity::Positive, &paper).unwrap();
+    b.stroke(&scene, &cache, &neg, Polarity::Negative, &paper).unwrap();
+    assert!(b.mask.count() < left.count() / 10, "{}", b.mask.count());
+}

@@ -37,7 +37,7 @@ use crate::eval::protocol::demo_stroke;
 use crate::field::cache::OCCUPIED_FLOOR;
 use crate::field::{Aabb, Bitmap, Field};
 use crate::render::{render, Probe, RenderOptions, Scene};
-use crate::segment::{apply_region, region_from_stroke, Polarity, SegmentParams};
+use crate::segment::{region_from_stroke, MaskBuilder, Polarity, SegmentParams};
 use crate::train::{default_cache_dir, default_teacher, preset, Session, TrainConfig};
 use crate::train::{DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS};
 use glam::Vec3;
@@ -650,13 +650,14 @@ pub fn score_scene(
         let (iou3d, iou3d_dense, selected) = resampled.iou(&region, label)?;
         // NVOS-style: the same stroke, minus negative strokes on neighbours.
         let near = nearest_objects(&boxes, label, &stroked, negatives);
-        let mut nvos = region.clone();
+        let mut builder = MaskBuilder::new(Bitmap::new(region.res()));
+        builder.stroke(&render_scene, &cache, &stroke, Polarity::Positive, &params)?;
         for &n in &near {
             let mut neg = demo_stroke(scene, &scene.objects[n as usize - 1].name).expect("filtered on strokes");
             neg.polarity = Polarity::Negative;
-            let (r, _) = region_from_stroke(&render_scene, &cache, &neg, &params)?;
-            apply_region(&mut nvos, &r, Polarity::Negative)?;
+            builder.stroke(&render_scene, &cache, &neg, Polarity::Negative, &params)?;
         }
+        let nvos = builder.mask;
         rows.push(ObjectRow {
             scene: scene.name.clone(),
             object: o.name.clone(),

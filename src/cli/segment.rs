@@ -5,7 +5,7 @@ use isrf::field::Bitmap;
 use isrf::field::Field;
 use isrf::render::Scene;
 use isrf::segment::bitmap_file::save_bitmap;
-use isrf::segment::{apply_region, load_strokes_on, region_from_stroke, Growth, GrowthRule, SegmentParams};
+use isrf::segment::{load_strokes_on, Growth, GrowthRule, MaskBuilder, SegmentParams};
 use std::path::PathBuf;
 use std::sync::Arc;
 
@@ -133,11 +133,11 @@ pub fn run(a: Args) -> Result<()> {
         cache.len()
     );
     let scene = Scene::single(field.clone());
-    let mut mask = Bitmap::new(field.res());
+    let mut builder = MaskBuilder::new(Bitmap::new(field.res()));
     for (i, s) in strokes.iter().enumerate() {
-        let (region, t) = region_from_stroke(&scene, &cache, s, &params)
+        let t = builder
+            .stroke(&scene, &cache, s, s.polarity, &params)
             .map_err(|e| anyhow::anyhow!("stroke {i} ('{}'): {e}", s.object))?;
-        apply_region(&mut mask, &region, s.polarity)?;
         let growth = if t.threshold > 0.0 {
             format!("stable region at threshold {:.2}", t.threshold)
         } else {
@@ -149,6 +149,7 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     let name = a.object.clone().unwrap_or_else(|| strokes[0].object.clone());
+    let mask = builder.mask;
     save_bitmap(&a.out, &mask, &name)?;
     let bb = mask.bounding_box();
     println!(

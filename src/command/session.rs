@@ -10,8 +10,8 @@ use crate::error::{Error, Result};
 use crate::field::{Bitmap, Field};
 use crate::render::{render, save_png, to_rgb8, ColorEdit, Layer, Probe, RenderOptions, Scene};
 use crate::segment::{
-    apply_region, load_strokes_on, mask_bound, region_from_stroke, scribble_stroke, Grower, Growth, Polarity,
-    SegmentParams, Stroke, Timings, MAX_GROW_STEPS,
+    load_strokes_on, mask_bound, scribble_stroke, Grower, Growth, MaskBuilder, Polarity, SegmentParams, Stroke,
+    Timings, MAX_GROW_STEPS,
 };
 use crate::util::Progress;
 use crate::{ensure, Result as R};
@@ -431,23 +431,24 @@ impl Session {
             to_world: f.transform,
             ..Layer::new(f.field.clone())
         }]);
-        let mut mask = existing
-            .as_ref()
-            .map_or_else(|| Bitmap::new(f.field.res()), |o| (*o.mask).clone());
+        let mut builder = MaskBuilder::new(
+            existing
+                .as_ref()
+                .map_or_else(|| Bitmap::new(f.field.res()), |o| (*o.mask).clone()),
+        );
         let mut total = Timings::default();
         for (i, s) in strokes.iter().enumerate() {
             self.progress
                 .set(&format!("segmenting '{object}'"), i as u64, strokes.len() as u64);
             let pol = polarity.unwrap_or(s.polarity);
-            if existing.is_none() && pol == Polarity::Negative && !mask.any() {
+            if existing.is_none() && pol == Polarity::Negative && !builder.mask.any() {
                 return Err(Error::invalid(format!(
                     "a negative stroke needs an existing object: there is no '{object}' yet"
                 )));
             }
-            let (region, t) = region_from_stroke(&scene, &cache, s, &st.params)?;
-            apply_region(&mut mask, &region, pol)?;
-            total = t;
+            total = builder.stroke(&scene, &cache, s, pol, &st.params)?;
         }
+        let mask = builder.mask;
         let msg = format!(
             "'{object}': {} voxels (last stroke {:.0} ms)",
             mask.count(),

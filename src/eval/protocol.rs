@@ -16,7 +16,7 @@ use crate::demo::{DemoScene, STROKE_RADIUS};
 use crate::error::{Error, Result};
 use crate::field::{Bitmap, FeatureCache, Field};
 use crate::render::{render, Probe, RenderOptions, Scene};
-use crate::segment::{apply_region, region_from_stroke, scribble_stroke, Polarity, SegmentParams, Stroke, Timings};
+use crate::segment::{region_from_stroke, scribble_stroke, MaskBuilder, Polarity, SegmentParams, Stroke, Timings};
 use glam::Vec2;
 use serde::Serialize;
 use std::path::Path;
@@ -325,15 +325,15 @@ pub fn evaluate_nvos(
     }
     let cache = field.feature_cache()?;
     let scene = Scene::single(field.clone());
-    let mut mask = Bitmap::new(field.res());
+    let mut builder = MaskBuilder::new(Bitmap::new(field.res()));
     for (paths, pol) in [(&pos, Polarity::Positive), (&neg, Polarity::Negative)] {
         for p in paths {
             let (w, h) = image::image_dimensions(p).map_err(|e| Error::bad_file(p, e.to_string()))?;
             let stroke = scribble_stroke(p, camera_at(ref_cam, w, h), pol, scene_name)?;
-            let (region, _) = region_from_stroke(&scene, &cache, &stroke, params)?;
-            apply_region(&mut mask, &region, pol)?;
+            builder.stroke(&scene, &cache, &stroke, pol, params)?;
         }
     }
+    let mask = builder.mask;
     let gt_img = image::open(&mask_path)
         .map_err(|e| Error::bad_file(&mask_path, e.to_string()))?
         .to_luma8();

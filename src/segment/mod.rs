@@ -234,6 +234,17 @@ pub fn region_from_features(
     p: &SegmentParams,
     t: &mut Timings,
 ) -> Result<Bitmap> {
+    segment_features(cache, feats, dim, p, t).map(|(region, _)| region)
+}
+
+/// [`region_from_features`], also returning the stroke's K-means centres.
+fn segment_features(
+    cache: &FeatureCache,
+    feats: &[f32],
+    dim: usize,
+    p: &SegmentParams,
+    t: &mut Timings,
+) -> Result<(Bitmap, Centroids)> {
     ensure!(
         dim == cache.channels,
         "stroke features have {dim} channels, the field's cache {}",
@@ -257,28 +268,106 @@ pub fn region_from_features(
         t.grow_steps = 1;
         t.threshold = s.threshold;
         t.region_voxels = s.region.count();
-        return Ok(s.region);
+        return Ok((s.region, centres));
     }
     let mut g = Grower::new(cache, p.grow);
     if p.grow.rule != GrowthRule::Paper {
-        g = g.with_bound(Bound::new(centres, p.grow.theta_grow.max(p.theta), floor));
+        g = g.with_bound(Bound::new(centres.clone(), p.grow.theta_grow.max(p.theta), floor));
     }
     t.grow_steps = g.grow(&mut region, p.growth, MAX_GROW_STEPS, |_| ());
     t.grow_ms = ms_since(t0);
     t.region_voxels = region.count();
-    Ok(region)
+    Ok((region, centres))
 }
 
-/// The bound of a `Bounded` growth step asked for on its own (the editor's
-/// "grow" button, the `grow` command): grown voxels must look like what the
-/// mask already holds, i.e. match K-means centres of its unit features.
-/// `None` for the paper's rule, which is unbounded. (The stable rule's steps
-/// on their own are bounded steps too.)
-pub fn mask_bound(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Option<Bound> {
-    if p.grow.rule == GrowthRule::Paper {
-        return None;
+/// An object's mask built stroke by stroke. Positive strokes add their
+/// regions and remember their centres. A negative stroke removes the voxels
+/// of its region that look more like it than like the object: closer to
+/// its centres than to the positive strokes' (or, when none are known, to
+/// centres of the rest of the mask). A negative stroke near an object whose
+/// features it shares then removes its neighbourhood, not the object (with
+/// plain subtraction NVOS-style negatives emptied the mask). The paper's
+/// rule keeps plain subtraction.
+pub struct MaskBuilder {
+    pub mask: Bitmap,
+    /// Centres of the positive strokes so far, concatenated.
+    positive: Centroids,
+}
+
+impl MaskBuilder {
+    pub fn new(mask: Bitmap) -> Self {
+        MaskBuilder {
+            mask,
+            positive: Centroids { dim: 0, data: vec![] },
+        }
     }
-    // A strided sample keeps K-means cheap on large masks.
+
+    /// Segments `stroke` on `scene` and applies it with `polarity`.
+    pub fn stroke(
+        &mut self,
+        scene: &Scene,
+        cache: &FeatureCache,
+        stroke: &Stroke,
+        polarity: Polarity,
+        p: &SegmentParams,
+    ) -> Result<Timings> {
+        p.validate()?;
+        let mut t = Timings::default();
+        let t0 = Instant::now();
+        t.stroke_pixels = stroke_pixels(stroke)?.len();
+        let (feats, dim) = stroke_features(scene, stroke, p.min_stroke_opacity)?;
+        t.stroke_features_ms = ms_since(t0);
+        let (region, centres) = segment_features(cache, &feats, dim, p, &mut t)?;
+        match polarity {
+            Polarity::Positive => {
+                self.positive.dim = centres.dim;
+                self.positive.data.extend_from_slice(&centres.data);
+                self.mask.union_with(&region)?;
+            }
+            Polarity::Negative if p.grow.rule == GrowthRule::Paper => self.mask.subtract(&region)?,
+            Polarity::Negative => self.subtract_competing(cache, &region, centres, p)?,
+        }
+        Ok(t)
+    }
+
+    fn subtract_competing(
+        &mut self,
+        cache: &FeatureCache,
+        region: &Bitmap,
+        negative: Centroids,
+        p: &SegmentParams,
+    ) -> Result<()> {
+        let keep = if !self.positive.is_empty() {
+            self.positive.clone()
+        } else {
+            let mut rest = self.mask.clone();
+            rest.subtract(region)?;
+            mask_centres(cache, &rest, p)
+        };
+        if keep.is_empty() {
+            return self.mask.subtract(region);
+        }
+        let (neg, keep) = (nnfm::CentreSet::new(negative), nnfm::CentreSet::new(keep));
+        let doomed: Vec<usize> = region
+            .ones()
+            .filter(|&v| self.mask.get(v))
+            .filter(|&v| {
+                cache
+                    .index
+                    .slot(v)
+                    .is_none_or(|r| neg.min_distance(cache, r) < keep.min_distance(cache, r))
+            })
+            .collect();
+        for v in doomed {
+            self.mask.set(v, false);
+        }
+        Ok(())
+    }
+}
+
+/// K-means centres of the unit features of a mask's voxels (a strided
+/// sample of at most 20k of them, so that large masks stay cheap).
+fn mask_centres(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Centroids {
     const MAX_ROWS: usize = 20_000;
     let rows: Vec<usize> = mask.ones().filter_map(|v| cache.index.slot(v)).collect();
     let stride = rows.len().div_ceil(MAX_ROWS).max(1);
@@ -290,9 +379,24 @@ pub fn mask_bound(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Opt
             feats.extend(cache.row(r).iter().map(|x| x * inv));
         }
     }
-    let centres = stroke_centres(&feats, c, p);
+    kmeans(&feats, c, p.k, p.kmeans_seed, p.kmeans_iters)
+}
+
+/// The bound of a `Bounded` growth step asked for on its own (the editor's
+/// "grow" button, the `grow` command): grown voxels must look like what the
+/// mask already holds, i.e. match K-means centres of its unit features.
+/// `None` for the paper's rule, which is unbounded. (The stable rule's steps
+/// on their own are bounded steps too.)
+pub fn mask_bound(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Option<Bound> {
+    if p.grow.rule == GrowthRule::Paper {
+        return None;
+    }
     let floor = p.sigma_floor(cache.geom.spacing().min_element());
-    Some(Bound::new(centres, p.grow.theta_grow.max(p.theta), floor))
+    Some(Bound::new(
+        mask_centres(cache, mask, p),
+        p.grow.theta_grow.max(p.theta),
+        floor,
+    ))
 }
 
 /// One stroke on `scene` (which must contain the field whose cache is given,
