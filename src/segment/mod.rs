@@ -311,13 +311,7 @@ impl MaskBuilder {
         polarity: Polarity,
         p: &SegmentParams,
     ) -> Result<Timings> {
-        p.validate()?;
-        let mut t = Timings::default();
-        let t0 = Instant::now();
-        t.stroke_pixels = stroke_pixels(stroke)?.len();
-        let (feats, dim) = stroke_features(scene, stroke, p.min_stroke_opacity)?;
-        t.stroke_features_ms = ms_since(t0);
-        let (region, centres) = segment_features(cache, &feats, dim, p, &mut t)?;
+        let (region, centres, t) = segment_stroke(scene, cache, stroke, p)?;
         match polarity {
             Polarity::Positive => {
                 self.positive.dim = centres.dim;
@@ -407,14 +401,24 @@ pub fn region_from_stroke(
     stroke: &Stroke,
     p: &SegmentParams,
 ) -> Result<(Bitmap, Timings)> {
+    segment_stroke(scene, cache, stroke, p).map(|(region, _, t)| (region, t))
+}
+
+/// [`region_from_stroke`], also returning the stroke's centres.
+fn segment_stroke(
+    scene: &Scene,
+    cache: &FeatureCache,
+    stroke: &Stroke,
+    p: &SegmentParams,
+) -> Result<(Bitmap, Centroids, Timings)> {
     p.validate()?;
     let mut t = Timings::default();
     let t0 = Instant::now();
     t.stroke_pixels = stroke_pixels(stroke)?.len();
     let (feats, dim) = stroke_features(scene, stroke, p.min_stroke_opacity)?;
     t.stroke_features_ms = ms_since(t0);
-    let region = region_from_features(cache, &feats, dim, p, &mut t)?;
-    Ok((region, t))
+    let (region, centres) = segment_features(cache, &feats, dim, p, &mut t)?;
+    Ok((region, centres, t))
 }
 
 /// Applies a stroke's region to an object mask: union for positive strokes,
