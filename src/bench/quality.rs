@@ -73,6 +73,8 @@ pub struct QualityConfig {
     pub negatives: usize,
     /// Cache folder; `None`: [`default_quality_dir`].
     pub cache_dir: Option<PathBuf>,
+    /// Segmentation parameters (the defaults unless an ablation asks).
+    pub params: SegmentParams,
 }
 
 impl Default for QualityConfig {
@@ -88,6 +90,7 @@ impl Default for QualityConfig {
             retrain: false,
             negatives: 2,
             cache_dir: None,
+            params: SegmentParams::default(),
         }
     }
 }
@@ -625,8 +628,9 @@ pub fn score_scene(
     views: &[Camera],
     view_names: &[String],
     negatives: usize,
+    params: &SegmentParams,
 ) -> Result<Vec<ObjectRow>> {
-    let params = SegmentParams::default();
+    let params = *params;
     let cache = field.feature_cache()?;
     let render_scene = Scene::single(field.clone());
     let truth_field = Arc::new(scene.field.clone());
@@ -738,7 +742,7 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
                 .map_or(String::new(), |p| format!(", held-out PSNR {p:.2} dB"))
         );
         let names: Vec<String> = (0..val.len()).map(|i| format!("val/r_{i:03}")).collect();
-        let rows = score_scene(&scene, &t.field, &val, &names, cfg.negatives)?;
+        let rows = score_scene(&scene, &t.field, &val, &names, cfg.negatives, &cfg.params)?;
         runs.push(SceneRun {
             scene: name.clone(),
             demo_res: cfg.demo_res,

@@ -59,6 +59,9 @@ pub struct QualityArgs {
     /// Print the report as JSON instead of tables.
     #[arg(long)]
     pub json: bool,
+    /// Segmentation parameters (defaults unless given: for ablations).
+    #[command(flatten)]
+    pub params: super::segment::ParamArgs,
 }
 
 #[derive(clap::Args)]
@@ -282,6 +285,7 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         feature_iters: Some(a.feature_iters),
         retrain: a.retrain,
         negatives: a.negatives,
+        params: a.params.params()?,
         ..Default::default()
     };
     if !a.scenes.is_empty() {
@@ -294,7 +298,12 @@ fn run_quality(a: QualityArgs) -> Result<()> {
     }
     println!(
         "segmentation quality on renders of the demo scenes, fields trained as `isrf train` (Blender preset, \
-         default teacher), one positive stroke per object, default segmentation parameters, {} rayon threads",
+         default teacher), one positive stroke per object, {} segmentation parameters, {} rayon threads",
+        if cfg.params == isrf::segment::SegmentParams::default() {
+            "default"
+        } else {
+            "NON-DEFAULT"
+        },
         rayon::current_num_threads()
     );
     for l in run_lines(&r) {

@@ -25,7 +25,7 @@ pub struct ParamArgs {
     #[arg(long)]
     pub k: Option<usize>,
     /// NNFM seed threshold (squared L2 distance between unit features)
-    /// [default: 0.4].
+    /// [default: 0.3; paper 0.4].
     #[arg(long)]
     pub theta: Option<f32>,
     /// Growth steps: a number (0 = seed only) or "converge" [default: converge].

@@ -72,7 +72,11 @@ impl Default for SegmentParams {
     fn default() -> Self {
         SegmentParams {
             k: 10,
-            theta: 0.4,
+            // 0.3 rather than the authors' 0.4 (their features are not unit
+            // length either): on the realistic benchmark 0.4 lets one toy's
+            // stroke seed the others (mean 3D IoU 0.228 -> 0.284 at 0.3),
+            // at a small cost on the blurred fern (0.761 -> 0.739).
+            theta: 0.3,
             grow: GrowParams::default(),
             growth: Growth::Converge,
             seed_floor: 0.1,
@@ -91,6 +95,7 @@ impl SegmentParams {
     /// floor (for the ablation).
     pub fn paper() -> Self {
         SegmentParams {
+            theta: 0.4,
             grow: GrowParams::paper(),
             solid_alpha: 0.0,
             stroke_keep: 1.0,
