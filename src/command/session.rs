@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 use crate::field::{Bitmap, Field};
 use crate::render::{render, save_png, to_rgb8, ColorEdit, Layer, Probe, RenderOptions, Scene};
 use crate::segment::{
-    load_strokes_on, mask_bound, scribble_stroke, Grower, Growth, MaskBuilder, Polarity, SegmentParams, Stroke,
+    load_strokes_in, mask_bound, scribble_stroke, Grower, Growth, MaskBuilder, Polarity, SegmentParams, Stroke,
     Timings, MAX_GROW_STEPS,
 };
 use crate::util::Progress;
@@ -341,14 +341,8 @@ impl Session {
                     FieldSource::File(fp) => crate::camera::set::capture_cameras(&self.resolve(fp)),
                     FieldSource::Demo { .. } => None,
                 };
-                let mut strokes = load_strokes_on(&self.resolve(p), cams.as_ref())?;
                 // The capture's cameras are in the field's frame: follow it.
-                for s in &mut strokes {
-                    if cams.is_some() {
-                        s.camera.c2w = f.transform * s.camera.c2w;
-                    }
-                }
-                strokes
+                load_strokes_in(&self.resolve(p), cams.as_ref(), f.transform)?
             }
             StrokeSource::Scribble { path, camera } => {
                 vec![scribble_stroke(

@@ -124,14 +124,14 @@ impl Bound {
 /// their flat-index deltas on this grid (x fastest), in a fixed order (the
 /// order of the sums, so results do not depend on how a voxel is reached).
 #[derive(Clone, Debug)]
-struct Offsets {
+pub(super) struct Offsets {
     res: [usize; 3],
     step: Vec<([i64; 3], f32)>,
     delta: Vec<isize>,
 }
 
 impl Offsets {
-    fn new(res: [usize; 3], p: &GrowParams) -> Self {
+    pub(super) fn new(res: [usize; 3], p: &GrowParams) -> Self {
         let mut step = Vec::with_capacity(27);
         let mut delta = Vec::with_capacity(27);
         let (sx, sy) = (res[0] as isize, (res[0] * res[1]) as isize);
@@ -150,7 +150,7 @@ impl Offsets {
     /// voxel `v`, k being the offset's position. Interior voxels take the
     /// fast path of flat deltas; border voxels check bounds.
     #[inline]
-    fn for_each(&self, v: usize, mut f: impl FnMut(usize, usize)) {
+    pub(super) fn for_each(&self, v: usize, mut f: impl FnMut(usize, usize)) {
         let [nx, ny, nz] = self.res;
         let x = v % nx;
         let yz = v / nx;

@@ -15,8 +15,8 @@ pub use grow::{grow_step_dense, Bound, GrowParams, Grower, GrowthRule};
 pub use kmeans::{kmeans, Centroids};
 pub use nnfm::nnfm_seed;
 pub use stroke::{
-    load_strokes, load_strokes_on, parse_strokes, parse_strokes_on, scribble_stroke, stroke_features, stroke_pixels,
-    Polarity, Stroke, StrokeDoc,
+    load_strokes, load_strokes_in, load_strokes_on, parse_strokes, parse_strokes_on, scribble_stroke, stroke_features,
+    stroke_pixels, Polarity, Stroke, StrokeDoc,
 };
 
 use crate::field::{Bitmap, FeatureCache};

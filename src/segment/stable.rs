@@ -24,6 +24,7 @@
 //!
 //! d is computed lazily, only for voxels the flood touches.
 
+use super::grow::{GrowParams, Offsets};
 use super::kmeans::Centroids;
 use super::nnfm::CentreSet;
 use crate::field::{Bitmap, FeatureCache};
@@ -65,16 +66,15 @@ impl Default for StableParams {
 pub struct StableRegion {
     pub region: Bitmap,
     pub threshold: f32,
-    /// Voxels reached by the flood (b ≤ t_max).
-    pub reached: usize,
 }
 
 /// Bottleneck distances, in flood order: `(b, voxel)` pairs with
 /// non-decreasing b, every solid voxel with b ≤ `t_max` once.
 fn flood(cache: &FeatureCache, centres: &Centroids, seed: &Bitmap, floor: f32, t_max: f32) -> Vec<(f32, u32)> {
     let dist = CentreSet::new(centres.clone());
-    let res = cache.geom.res;
-    let mut touched = Bitmap::new(res);
+    // The grower's 3×3×3 neighbourhood (its spatial weights are unused).
+    let offs = Offsets::new(cache.geom.res, &GrowParams::default());
+    let mut touched = Bitmap::new(cache.geom.res);
     // f32 keys ≥ 0 order like their bits.
     let mut heap: BinaryHeap<Reverse<(u32, u32)>> = BinaryHeap::new();
     for v in seed.ones() {
@@ -90,7 +90,7 @@ fn flood(cache: &FeatureCache, centres: &Centroids, seed: &Bitmap, floor: f32, t
             break;
         }
         order.push((b, v));
-        for_each_neighbour(res, v as usize, |n| {
+        offs.for_each(v as usize, |_, n| {
             if touched.get(n) {
                 return;
             }
@@ -105,25 +105,6 @@ fn flood(cache: &FeatureCache, centres: &Centroids, seed: &Bitmap, floor: f32, t
         });
     }
     order
-}
-
-fn for_each_neighbour(res: [usize; 3], v: usize, mut f: impl FnMut(usize)) {
-    let [nx, ny, nz] = res;
-    let (x, y, z) = (v % nx, (v / nx) % ny, v / (nx * ny));
-    for dz in -1i64..=1 {
-        for dy in -1i64..=1 {
-            for dx in -1i64..=1 {
-                if dx == 0 && dy == 0 && dz == 0 {
-                    continue;
-                }
-                let (a, b, c) = (x as i64 + dx, y as i64 + dy, z as i64 + dz);
-                if a < 0 || b < 0 || c < 0 || a >= nx as i64 || b >= ny as i64 || c >= nz as i64 {
-                    continue;
-                }
-                f(a as usize + nx * (b as usize + ny * c as usize));
-            }
-        }
-    }
 }
 
 /// The threshold at which the region's relative growth over ±δ is smallest,
@@ -169,11 +150,7 @@ pub fn stable_region(
         debug_assert!(b <= threshold);
         region.set(v as usize, true);
     }
-    StableRegion {
-        region,
-        threshold,
-        reached: order.len(),
-    }
+    StableRegion { region, threshold }
 }
 
 #[cfg(test)]

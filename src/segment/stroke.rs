@@ -279,20 +279,28 @@ pub fn load_strokes(path: &Path) -> Result<Vec<Stroke>> {
 /// Like [`load_strokes`]; a stroke whose camera is only a `file_path` takes
 /// that frame's camera from `cameras` (e.g. a dataset's camera set).
 pub fn load_strokes_on(path: &Path, cameras: Option<&CameraSet>) -> Result<Vec<Stroke>> {
+    load_strokes_in(path, cameras, Affine3A::IDENTITY)
+}
+
+/// Like [`load_strokes_on`] for cameras given in a field's frame: the views
+/// taken from `cameras` are moved by `to_world` (where the field is placed);
+/// cameras spelt out in the file are world cameras already.
+pub fn load_strokes_in(path: &Path, cameras: Option<&CameraSet>, to_world: Affine3A) -> Result<Vec<Stroke>> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    parse_strokes_on(&text, cameras).map_err(|e| Error::bad_file(path, e.to_string()))
+    parse_strokes_in(&text, cameras, to_world).map_err(|e| Error::bad_file(path, e.to_string()))
 }
 
 pub fn parse_strokes(text: &str) -> Result<Vec<Stroke>> {
     parse_strokes_on(text, None)
 }
 
-pub fn parse_strokes_on(text: &str, cameras: Option<&CameraSet>) -> Result<Vec<Stroke>> {
-    // Try the single-stroke form first for the most specific error message.
+/// The stroke documents of a stroke file's text (at least one).
+fn stroke_docs(text: &str) -> Result<Vec<StrokeDoc>> {
     let docs = match serde_json::from_str::<StrokeFile>(text) {
         Ok(StrokeFile::One(d)) => vec![d],
         Ok(StrokeFile::Many(v)) | Ok(StrokeFile::Wrapped { strokes: v }) => v,
         Err(_) => {
+            // The single-stroke form gives the most specific error message.
             let e = serde_json::from_str::<StrokeDoc>(text)
                 .err()
                 .map(|e| e.to_string())
@@ -301,12 +309,25 @@ pub fn parse_strokes_on(text: &str, cameras: Option<&CameraSet>) -> Result<Vec<S
         }
     };
     ensure!(!docs.is_empty(), "the stroke document holds no strokes");
+    Ok(docs)
+}
+
+pub fn parse_strokes_on(text: &str, cameras: Option<&CameraSet>) -> Result<Vec<Stroke>> {
+    parse_strokes_in(text, cameras, Affine3A::IDENTITY)
+}
+
+fn parse_strokes_in(text: &str, cameras: Option<&CameraSet>, to_world: Affine3A) -> Result<Vec<Stroke>> {
+    let docs = stroke_docs(text)?;
     docs.iter()
         .enumerate()
         .map(|(i, d)| {
             let named = d.camera.transform_matrix.is_none() && d.camera.file_path.is_some();
             let stroke = match (named, cameras) {
-                (true, Some(set)) => d.to_stroke_on(frame_camera(set, &d.camera)?),
+                (true, Some(set)) => {
+                    let mut camera = frame_camera(set, &d.camera)?;
+                    camera.c2w = to_world * camera.c2w;
+                    d.to_stroke_on(camera)
+                }
                 _ => d.to_stroke(),
             };
             stroke.map_err(|e| Error::invalid(format!("stroke {i}: {e}")))
@@ -319,21 +340,8 @@ pub fn parse_strokes_on(text: &str, cameras: Option<&CameraSet>) -> Result<Vec<S
 /// only the field's capture cameras can tell at run time.
 pub fn check_strokes(path: &Path) -> Result<()> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let docs = match serde_json::from_str::<StrokeFile>(&text) {
-        Ok(StrokeFile::One(d)) => vec![d],
-        Ok(StrokeFile::Many(v)) | Ok(StrokeFile::Wrapped { strokes: v }) => v,
-        Err(_) => {
-            return parse_strokes(&text)
-                .map(|_| ())
-                .map_err(|e| Error::bad_file(path, e.to_string()))
-        }
-    };
+    let docs = stroke_docs(&text).map_err(|e| Error::bad_file(path, e.to_string()))?;
     let bad = |i: usize, e: Error| Error::bad_file(path, format!("stroke {i}: {e}"));
-    ensure!(
-        !docs.is_empty(),
-        "{}: the stroke document holds no strokes",
-        path.display()
-    );
     for (i, d) in docs.iter().enumerate() {
         if d.camera.transform_matrix.is_none() && d.camera.file_path.is_some() {
             ensure!(!d.points.is_empty(), "{}: stroke {i} has no points", path.display());
