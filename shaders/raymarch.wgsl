@@ -3,8 +3,10 @@
 // into the view's march textures (colour, depth), which composite.wgsl
 // draws into the view; src/app/gpu/view.rs decides when to march.
 //
-// Samples sit at fixed world distances t_i = (i + 1/2) * step along the unit
-// ray from the camera; at each sample the layers' (masked, activated)
+// Samples sit at world distances t_i = (i + 1/2) * step along the unit ray
+// from the camera, the step fixed per ray (render::Step: a fraction of a
+// cell measured in cell units in the finest layer the ray meets, or a
+// world distance); at each sample the layers' (masked, activated)
 // densities add and colours mix by density (D²NeRF), alpha = 1 - exp(-σ δ),
 // T_i = Π (1 - alpha_j), C = Σ T_i alpha_i c_i + T_N · background. Grids are
 // corner-aligned (src/field/geom.rs). Only occupied bricks of the grids
@@ -35,7 +37,7 @@ struct View {
     // fx, fy, cx, cy
     intrinsics: vec4<f32>,
     background: vec4<f32>,
-    // step, min transmittance, 0, 0
+    // step, min transmittance, step kind (0: cells, 1: world), 0
     march: vec4<f32>,
     // layer count
     counts: vec4<u32>,
@@ -158,6 +160,8 @@ var<private> finfo: array<FieldInfo, MAX_LAYERS>;
 var<private> linfo: array<vec4<u32>, MAX_LAYERS>;
 var<private> lbox_min: array<vec3<f32>, MAX_LAYERS>;
 var<private> lbox_max: array<vec3<f32>, MAX_LAYERS>;
+// The ray's sample spacing.
+var<private> ray_dt: f32;
 #ifdef HIGHLIGHT
 var<private> lhighlight: array<u32, MAX_LAYERS>;
 #endif
@@ -540,6 +544,44 @@ fn shade(n: u32, t: f32, sum: f32) -> vec3<f32> {
     return col;
 }
 
+// The first sample at or after sample index `i` (updated) where some layer
+// may have density, past the empty space the layers' skip grids vouch for;
+// -1 when the ray leaves the scene (t > t1) first. Layer states are
+// refreshed as the ray goes.
+fn next_sample(n: u32, i: ptr<function, f32>, t1: f32) -> f32 {
+    let dt = ray_dt;
+    for (var it = 0u; it < MAX_ITERATIONS; it++) {
+        let t = (*i + 0.5) * dt;
+        if t > t1 {
+            return -1.0;
+        }
+        var any_occ = false;
+        var next_t = INF;
+        for (var k = 0u; k < MAX_LAYERS; k++) {
+            if k >= n {
+                break;
+            }
+            if t >= valid_until[k] {
+                update_state(k, t);
+            }
+            if occupied[k] != 0u {
+                any_occ = true;
+            } else {
+                next_t = min(next_t, valid_until[k]);
+            }
+        }
+        if any_occ {
+            return t;
+        }
+        if next_t >= INF {
+            return -1.0;
+        }
+        // Jump to the first sample some layer might have density at.
+        *i = max(ceil(next_t / dt - 0.5), *i + 1.0);
+    }
+    return -1.0;
+}
+
 fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {
     let lo = c / 12.92;
     let hi = pow((c + vec3<f32>(0.055)) / 1.055, vec3<f32>(2.4));
@@ -565,12 +607,14 @@ fn fragment(@builtin(position) pos: vec4<f32>) -> MarchOutput {
     let dir = normalize(mat3x3<f32>(c2w[0].xyz, c2w[1].xyz, c2w[2].xyz) * d_cam);
     let origin = c2w[3].xyz;
     let n = min(view.counts.x, MAX_LAYERS);
-    let dt = view.march.x;
     let min_t = view.march.y;
 
-    // Rays in each layer's frame, and the union of the layers' intervals.
+    // Rays in each layer's frame, the union of the layers' intervals and
+    // the ray's cell distance (render::cell_distance) in the finest layer
+    // it meets.
     var t0 = INF;
     var t1 = -INF;
+    var cell = INF;
     for (var k = 0u; k < MAX_LAYERS; k++) {
         if k >= n {
             break;
@@ -594,8 +638,13 @@ fn fragment(@builtin(position) pos: vec4<f32>) -> MarchOutput {
         if hit.y > hit.x {
             t0 = min(t0, hit.x);
             t1 = max(t1, hit.y);
+            let f = finfo[k];
+            let spacing = (f.bounds_max.xyz - f.bounds_min.xyz) / (vec3<f32>(f.res.xyz) - vec3<f32>(1.0));
+            cell = min(cell, 1.0 / length(d / spacing));
         }
     }
+    let dt = select(view.march.x * cell, view.march.x, view.march.z > 0.5);
+    ray_dt = dt;
 
     var trans = 1.0;
     var color = vec3<f32>(0.0);
@@ -603,33 +652,14 @@ fn fragment(@builtin(position) pos: vec4<f32>) -> MarchOutput {
     if t1 > t0 {
         var i = max(ceil(t0 / dt - 0.5), 0.0);
         for (var it = 0u; it < MAX_ITERATIONS; it++) {
-            let t = (i + 0.5) * dt;
-            if t > t1 || trans < min_t {
+            // Advance to the next sample where some layer may have density.
+            // This inner loop only reads the skip grids: on SIMD CPUs
+            // (lavapipe) every lane of a group pays for each iteration of
+            // the outer loop, so lanes crossing empty space wait here
+            // cheaply instead of costing the others a full sample each.
+            let t = next_sample(n, &i, t1);
+            if t < 0.0 || trans < min_t {
                 break;
-            }
-            // Which layers may have density here; where none does, jump to
-            // the first sample some layer might.
-            var any_occ = false;
-            var next_t = INF;
-            for (var k = 0u; k < MAX_LAYERS; k++) {
-                if k >= n {
-                    break;
-                }
-                if t >= valid_until[k] {
-                    update_state(k, t);
-                }
-                if occupied[k] != 0u {
-                    any_occ = true;
-                } else {
-                    next_t = min(next_t, valid_until[k]);
-                }
-            }
-            if !any_occ {
-                if next_t >= INF {
-                    break;
-                }
-                i = max(ceil(next_t / dt - 0.5), i + 1.0);
-                continue;
             }
             i += 1.0;
             let sum = densities(n, t);

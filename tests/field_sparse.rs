@@ -61,7 +61,7 @@ fn rays(n: usize, seed: u64) -> Vec<Ray> {
 fn render(field: Field, rays: &[Ray], step: f32) -> isrf::render::RenderOutput {
     let scene = Scene::single(Arc::new(field));
     let opts = RenderOptions {
-        step: Some(step),
+        step: isrf::render::Step::World(step),
         features: true,
         ..Default::default()
     };

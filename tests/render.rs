@@ -46,7 +46,7 @@ fn slab_opacity_matches_closed_form() {
         let field = Arc::new(slab(sigma, 41));
         let scene = Scene::new(vec![Layer::new(field)]);
         let opts = RenderOptions {
-            step: Some(0.001),
+            step: isrf::render::Step::World(0.001),
             ..Default::default()
         };
         let out = render_rays(&scene, &[ray_x()], &opts).unwrap();
@@ -193,7 +193,7 @@ fn translated_layer_renders_like_translated_camera() {
     let mut moved = Layer::new(f.clone());
     moved.to_world = Affine3A::from_translation(t);
     let opts = RenderOptions {
-        step: Some(0.01),
+        step: isrf::render::Step::World(0.01),
         ..Default::default()
     };
     let a = render(&Scene::new(vec![moved]), &cam, &opts).unwrap();
@@ -230,7 +230,7 @@ fn empty_space_skipping_is_exact() {
         Vec3::Y,
     );
     let opts = RenderOptions {
-        step: Some(0.01),
+        step: isrf::render::Step::World(0.01),
         min_transmittance: 0.0,
         ..Default::default()
     };
@@ -294,4 +294,54 @@ fn bad_inputs_are_rejected() {
     l.mask = Mask::Keep(Arc::new(Bitmap::new([4, 4, 4])));
     let e = render_rays(&Scene::new(vec![l]), &[ray_x()], &RenderOptions::default()).unwrap_err();
     assert!(e.to_string().contains("mask resolution"), "{e}");
+}
+
+#[test]
+fn the_default_step_is_half_a_cell_along_each_ray() {
+    use isrf::render::{RenderOutput, Step};
+    // Dense sheets one grid point thick on every axis, on a grid whose z
+    // cells are 4x longer than its x and y cells (as an NDC field's depth
+    // cells are): the quadrature of such hat-shaped densities depends on
+    // where the samples fall, so renders tell sample spacings apart.
+    let sheet = |v: f32, s: f32| ((v + 1.0) / s - 0.5).rem_euclid(4.0) < 1.0;
+    let (sx, sz) = (2.0 / 64.0, 2.0 / 16.0);
+    let field = Arc::new(FieldBuilder::new(unit_box(), [65, 65, 17]).build(
+        |p| if sheet(p.x, sx) || sheet(p.z, sz) { 4.0 } else { 0.0 },
+        |p| Vec3::new(0.5 + 0.4 * p.x, 0.3, 0.5 + 0.4 * p.z),
+        None,
+    ));
+    let scene = Scene::single(field);
+    let opts = |step| RenderOptions {
+        step,
+        min_transmittance: 0.0,
+        ..Default::default()
+    };
+    let render = |d: Vec3, step| {
+        let ray = Ray {
+            origin: Vec3::new(0.013, -0.03, 0.021) - 3.0 * d,
+            dir: d,
+        };
+        render_rays(&scene, &[ray], &opts(step)).unwrap()
+    };
+    let same = |a: &RenderOutput, b: &RenderOutput| {
+        (a.color[0] - b.color[0]).abs().max_element() < 1e-6 && (a.opacity[0] - b.opacity[0]).abs() < 1e-6
+    };
+    // Along z: half a (long) z cell; along x: half an x cell; an oblique
+    // ray moves half a cell in cell units per sample.
+    let oblique = Vec3::new(1.0, 0.0, 1.0).normalize();
+    let cases = [
+        (Vec3::Z, 0.5 * sz),
+        (Vec3::X, 0.5 * sx),
+        (oblique, 0.5 / (oblique / Vec3::new(sx, sx, sz)).length()),
+    ];
+    for (d, want) in cases {
+        let cells = render(d, Step::default());
+        assert!(same(&cells, &render(d, Step::World(want))), "along {d}");
+        // ... and not the finest side's step (the test can tell them apart).
+        if want > 0.5 * sx * 1.01 {
+            assert!(!same(&cells, &render(d, Step::World(0.5 * sx))), "along {d}");
+        }
+        assert!(!same(&cells, &render(d, Step::World(0.9 * want))), "along {d}");
+    }
+    assert!(Step::World(0.0).check().is_err() && Step::Cells(f32::NAN).check().is_err());
 }

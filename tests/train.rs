@@ -111,7 +111,7 @@ fn forward_matches_reference_renderer() {
         &scene,
         &rs,
         &RenderOptions {
-            step: Some(step),
+            step: isrf::render::Step::World(step),
             features: true,
             min_transmittance: 0.0,
             ..Default::default()
@@ -288,7 +288,7 @@ fn vm_forward_matches_reference_renderer_and_file_round_trip() {
         &scene,
         &rs,
         &RenderOptions {
-            step: Some(step),
+            step: isrf::render::Step::World(step),
             min_transmittance: 0.0,
             ..Default::default()
         },

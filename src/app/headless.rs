@@ -166,9 +166,9 @@ impl HeadlessRenderer {
         self.app.world_mut().resource_mut::<MarchScene>().overlay = overlay;
     }
 
-    /// World-space sample spacing; `None`: the scene's default (the CPU
-    /// renderer's).
-    pub fn set_step(&mut self, step: Option<f32>) {
+    /// Sample spacing along the rays (the CPU renderer's default:
+    /// `Step::default()`).
+    pub fn set_step(&mut self, step: crate::render::Step) {
         self.app.world_mut().resource_mut::<MarchScene>().step = step;
     }
 

@@ -87,7 +87,7 @@ pub struct BenchArgs {
 pub fn bench(a: BenchArgs) -> Result<()> {
     use isrf::app::headless::{gpu_available, HeadlessRenderer};
     use isrf::camera::{Camera, Intrinsics};
-    use isrf::render::Scene;
+    use isrf::render::{Scene, Step};
     use std::sync::Arc;
     use std::time::Instant;
 
@@ -123,24 +123,24 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         .map(|l| Arc::new(d.labels.mask(l)));
     let field = Arc::new(d.field);
     let moved_scene = mask.map(|m| Arc::new(moved_object_scene(m, &field)));
-    // (name, scene, sample spacing (None: the renderer's default), march
-    // resolution scale).
+    // (name, scene, sample spacing, march resolution scale).
     let single = Arc::new(Scene::single(field.clone()));
-    let mut rows = vec![("field".to_string(), single.clone(), None, 1.0)];
+    let step = Step::default();
+    let mut rows = vec![("field".to_string(), single.clone(), step, 1.0)];
     if let Some(m) = &moved_scene {
-        rows.push(("field + one moved object".to_string(), m.clone(), None, 1.0));
+        rows.push(("field + one moved object".to_string(), m.clone(), step, 1.0));
     }
     // The editor's "step ×" slider at 2: half the samples, a coarser image.
     rows.push((
         "field, step ×2 (slider)".to_string(),
         single.clone(),
-        Some(single.default_step() * 2.0),
+        step.scaled(2.0),
         1.0,
     ));
     // What the editor marches while the view moves on a software GPU.
-    rows.push(("field, ½ res (moving)".to_string(), single.clone(), None, 0.5));
+    rows.push(("field, ½ res (moving)".to_string(), single.clone(), step, 0.5));
     if let Some(m) = &moved_scene {
-        rows.push(("+ moved object, ½ res".to_string(), m.clone(), None, 0.5));
+        rows.push(("+ moved object, ½ res".to_string(), m.clone(), step, 0.5));
     }
     let views: Vec<Camera> = d
         .cameras
@@ -166,11 +166,10 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         println!("{name:<28} {:>10.1} {:>10.2}", 1e3 / fps, fps);
     }
     // A still view composites the last march without marching again.
-    r.set_step(None);
+    r.set_step(step);
     r.set_render_scale(1.0);
     let still = time_frames(&mut r, single, &views, a.frames, false)?;
     println!("{:<28} {:>10.1} {:>10.2}", "field, still view", 1e3 / still, still);
-    r.set_step(None);
     if let Some(object) = &stroke_object {
         // The session's first stroke also compiles the pipeline variant that
         // tints a selection (on lavapipe about 0.1 s more); later ones reuse

@@ -139,19 +139,6 @@ impl Scene {
     pub fn single(field: Arc<Field>) -> Self {
         Scene::new(vec![Layer::new(field)])
     }
-    /// Sample spacing used when the options give none: half the finest
-    /// world-space voxel size over all layers.
-    pub fn default_step(&self) -> f32 {
-        self.layers
-            .iter()
-            .map(|l| {
-                let sp = l.field.geom().spacing().min_element();
-                let m = l.to_world.matrix3;
-                let scale = m.x_axis.length().min(m.y_axis.length()).min(m.z_axis.length());
-                0.5 * sp * scale
-            })
-            .fold(f32::INFINITY, f32::min)
-    }
     /// Feature channel count shared by the layers that have features.
     pub fn feature_channels(&self) -> Result<usize> {
         let mut c = 0;
@@ -180,10 +167,60 @@ pub struct Probe {
     pub mask: Arc<Bitmap>,
 }
 
+/// How far apart a ray's samples lie.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Step {
+    /// This fraction of a grid cell along the ray, per ray: the distance
+    /// over which the ray moves by that fraction of a cell, measured in
+    /// cell units ([`cell_distance`]), in the finest layer whose box it
+    /// meets. The trainer samples so ([`crate::train::trainer::ray_step`]):
+    /// on cubic cells it is a fixed world step, on the anisotropic NDC grids
+    /// of forward-facing scenes (depth cells 2–3× longer) rays along depth
+    /// take 2–3× fewer samples than the finest side would ask for.
+    Cells(f32),
+    /// A fixed world distance.
+    World(f32),
+}
+
+impl Default for Step {
+    /// Half a cell: two samples per cell crossed, as DVGO and Plenoxels.
+    fn default() -> Self {
+        Step::Cells(0.5)
+    }
+}
+
+impl Step {
+    pub fn check(self) -> Result<()> {
+        let (Step::Cells(v) | Step::World(v)) = self;
+        ensure!(v.is_finite() && v > 0.0, "render step must be positive, got {self:?}");
+        Ok(())
+    }
+    /// The same rule with samples `k` times as far apart.
+    pub fn scaled(self, k: f32) -> Step {
+        match self {
+            Step::Cells(v) => Step::Cells(v * k),
+            Step::World(v) => Step::World(v * k),
+        }
+    }
+}
+
+/// World distance along a ray whose direction in a grid's local frame is
+/// `d_local` (per unit world distance) over which it moves by one cell of
+/// `spacing`, measured in cell units (the Euclidean length of its path in
+/// grid coordinates).
+pub fn cell_distance(spacing: Vec3, d_local: Vec3) -> f32 {
+    let rate = (d_local / spacing).length();
+    if rate > 0.0 {
+        1.0 / rate
+    } else {
+        f32::INFINITY
+    }
+}
+
 #[derive(Clone, Debug)]
 pub struct RenderOptions {
-    /// World-space sample spacing; `None` = [`Scene::default_step`].
-    pub step: Option<f32>,
+    /// Sample spacing along each ray ([`Step::default`]: half a cell).
+    pub step: Step,
     pub features: bool,
     pub depth: bool,
     pub layer_opacity: bool,
@@ -195,7 +232,7 @@ pub struct RenderOptions {
 impl Default for RenderOptions {
     fn default() -> Self {
         RenderOptions {
-            step: None,
+            step: Step::default(),
             features: false,
             depth: true,
             layer_opacity: false,
@@ -297,7 +334,6 @@ struct Tracer<'a> {
     opts: &'a RenderOptions,
     /// Per-ray accumulators: layer opacities then probe opacities.
     nl: usize,
-    step: f32,
     background: Vec3,
 }
 
@@ -310,7 +346,7 @@ struct RaySlot<'o> {
 }
 
 impl<'a> Tracer<'a> {
-    fn new(layers: &'a [Prepared<'a>], opts: &'a RenderOptions, step: f32, background: Vec3, channels: usize) -> Self {
+    fn new(layers: &'a [Prepared<'a>], opts: &'a RenderOptions, background: Vec3, channels: usize) -> Self {
         Tracer {
             layers,
             samplers: layers.iter().map(|l| l.field.sampler()).collect(),
@@ -318,24 +354,30 @@ impl<'a> Tracer<'a> {
             feat: vec![0.0; channels],
             opts,
             nl: if opts.layer_opacity { layers.len() } else { 0 },
-            step,
             background,
         }
     }
 
-    /// The world-distance interval where the ray meets any layer's box.
-    fn interval(&self, ray: &Ray) -> Option<(f32, f32)> {
+    /// The world-distance interval where the ray meets any layer's box, and
+    /// the ray's sample spacing.
+    fn interval(&self, ray: &Ray) -> Option<(f32, f32, f32)> {
         let mut lo = f32::INFINITY;
         let mut hi = f32::NEG_INFINITY;
+        let mut cell = f32::INFINITY;
         for l in self.layers {
             let o = l.to_local.transform_point3(ray.origin);
             let d = l.to_local.transform_vector3(ray.dir);
             if let Some((a, b)) = l.field.bounds().intersect(o, d) {
                 lo = lo.min(a);
                 hi = hi.max(b);
+                cell = cell.min(cell_distance(l.field.geom().spacing(), d));
             }
         }
-        (hi > lo).then_some((lo, hi))
+        let dt = match self.opts.step {
+            Step::Cells(f) => f * cell,
+            Step::World(w) => w,
+        };
+        (hi > lo && dt.is_finite() && dt > 0.0).then_some((lo, hi, dt))
     }
 
     /// If every layer is empty around world point `x`, the world distance to
@@ -357,8 +399,7 @@ impl<'a> Tracer<'a> {
         let mut depth = 0.0;
         slot.features.fill(0.0);
         layer_opacity.fill(0.0);
-        if let Some((t0, t1)) = self.interval(ray) {
-            let dt = self.step;
+        if let Some((t0, t1, dt)) = self.interval(ray) {
             let mut i = (t0 / dt - 0.5).ceil().max(0.0) as i64;
             loop {
                 let t = (i as f32 + 0.5) * dt;
@@ -478,11 +519,7 @@ pub fn bitmap_fraction(field: &Field, bits: &Bitmap, p: Vec3) -> f32 {
 pub fn render_rays(scene: &Scene, rays: &[Ray], opts: &RenderOptions) -> Result<RenderOutput> {
     let layers = prepare(scene)?;
     let channels = if opts.features { scene.feature_channels()? } else { 0 };
-    let step = opts.step.unwrap_or_else(|| scene.default_step());
-    ensure!(
-        step.is_finite() && step > 0.0,
-        "render step must be positive, got {step}"
-    );
+    opts.step.check()?;
     let n = rays.len();
     let nl = if opts.layer_opacity { layers.len() } else { 0 };
     let np = opts.probes.len();
@@ -518,7 +555,7 @@ pub fn render_rays(scene: &Scene, rays: &[Ray], opts: &RenderOptions) -> Result<
                 probe_opacity: vec![],
             };
             let mut lo = vec![0.0f32; m * ne];
-            let mut tracer = Tracer::new(&layers, opts, step, scene.background, channels);
+            let mut tracer = Tracer::new(&layers, opts, scene.background, channels);
             for (j, ray) in chunk.iter().enumerate() {
                 let slot = RaySlot {
                     color: &mut o.color[j],

@@ -707,9 +707,9 @@ pub fn step_of(geom: &GridGeom) -> f32 {
 /// rays run mostly along depth, and the smallest side would sample them 2–3×
 /// finer than the grid can resolve, at 2–3× the cost.
 pub fn ray_step(geom: &GridGeom, dir: Vec3) -> f32 {
-    let in_voxels = (dir / geom.spacing()).length();
-    if in_voxels.is_finite() && in_voxels > 0.0 {
-        0.5 / in_voxels
+    let cell = crate::render::cell_distance(geom.spacing(), dir);
+    if cell.is_finite() && cell > 0.0 {
+        0.5 * cell
     } else {
         step_of(geom)
     }

@@ -314,7 +314,7 @@ pub fn sync_scene(
     let mut st = es.state.clone();
     st.background = inputs.background;
     let (scene, overlay) = build_scene(&st, &inputs.previews, inputs.selected.as_deref(), inputs.mode);
-    let step = (!scene.layers.is_empty()).then(|| scene.default_step() * inputs.step_scale);
+    let step = crate::render::Step::default().scaled(inputs.step_scale);
     march.scene = Some(Arc::new(scene));
     march.overlay = overlay;
     march.step = step;

@@ -25,7 +25,7 @@ pub mod pool;
 mod view;
 
 use crate::field::Field;
-use crate::render::Scene;
+use crate::render::{Scene, Step};
 use bevy::asset::{Assets, Handle};
 use bevy::core_pipeline::core_3d::main_opaque_pass_3d;
 use bevy::core_pipeline::{Core3d, Core3dSystems, FullscreenShader};
@@ -56,8 +56,8 @@ pub struct MarchScene {
     pub scene: Option<Arc<Scene>>,
     /// Editor overlay per layer (tint the selected object, dim others).
     pub overlay: Vec<Overlay>,
-    /// World-space sample spacing; `None` = [`Scene::default_step`].
-    pub step: Option<f32>,
+    /// Sample spacing along each ray (the CPU renderer's default: half a cell).
+    pub step: Step,
     pub min_transmittance: f32,
     /// Bytes of GPU memory the pool textures may take; beyond it the view
     /// shows a coarser level of detail ([`pool::plan`]).
@@ -77,7 +77,7 @@ impl Default for MarchScene {
         MarchScene {
             scene: None,
             overlay: Vec::new(),
-            step: None,
+            step: Step::default(),
             min_transmittance: 1e-4,
             memory_budget: default_memory_budget(),
         }
@@ -417,7 +417,7 @@ struct GpuSceneCache {
     atlas: Option<AtlasTextures>,
     layer_buffer: Option<Buffer>,
     layers: Vec<GpuLayer>,
-    step: f32,
+    step: Step,
     background: [f32; 4],
     min_transmittance: f32,
     scene_ptr: usize,
@@ -812,17 +812,8 @@ fn update_cache(
         cache.layer_buffer = Some(storage_buffer(device, "isrf_layers", bytes)?);
     }
     cache.layers = layers;
-    // An empty scene (nothing loaded yet) draws the background; any step will do.
-    let step = match march.step {
-        Some(s) => s,
-        None if scene.layers.is_empty() => 1.0,
-        None => scene.default_step(),
-    };
-    crate::ensure!(
-        step.is_finite() && step > 0.0,
-        "render step must be positive, got {step}"
-    );
-    cache.step = step;
+    march.step.check()?;
+    cache.step = march.step;
     let bg = scene.background;
     cache.background = [bg.x, bg.y, bg.z, 1.0];
     cache.min_transmittance = march.min_transmittance;

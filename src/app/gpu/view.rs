@@ -13,6 +13,7 @@ use super::{
     opaque_target, GpuSceneCache, MarchKey, RayMarchCamera, RayMarchPipeline, RayMarchShaders, SharedStatus,
     MARCH_COLOR_FORMAT, MARCH_DEPTH_FORMAT,
 };
+use crate::render::Step;
 use bevy::core_pipeline::FullscreenShader;
 use bevy::prelude::*;
 use bevy::render::camera::ExtractedCamera;
@@ -201,7 +202,10 @@ fn gpu_view(view: &ExtractedView, cam: &RayMarchCamera, cache: &GpuSceneCache, s
         clip_from_world: clip_from_world.to_cols_array_2d(),
         intrinsics: [fx * sx, fy * sy, cx * sx, cy * sy],
         background: cache.background,
-        march: [cache.step, cache.min_transmittance, 0.0, 0.0],
+        march: match cache.step {
+            Step::Cells(v) => [v, cache.min_transmittance, 0.0, 0.0],
+            Step::World(v) => [v, cache.min_transmittance, 1.0, 0.0],
+        },
         counts: [cache.layers.len() as u32, 0, 0, 0],
         atlas: cache.atlas.as_ref().map_or([1.0; 4], |a| {
             let s = a.size.map(|n| 1.0 / n as f32);
