@@ -31,6 +31,8 @@
 //
 // Data layout: see src/app/gpu/pack.rs.
 
+#import isrf::common::{FieldInfo, COLOR_SPARSE, sh_basis, sh_dot, sh_colour}
+
 struct View {
     c2w: mat4x4<f32>,
     clip_from_world: mat4x4<f32>,
@@ -59,21 +61,6 @@ struct Layer {
     highlight: vec4<u32>,
 };
 
-struct FieldInfo {
-    // xyz bounds; w: activation shift
-    bounds_min: vec4<f32>,
-    // xyz bounds; w: activation kind (0 relu, 1 softplus)
-    bounds_max: vec4<f32>,
-    // points per axis at the level of detail shown, colour kind
-    // (COLOR_SPARSE | COLOR_SH bits)
-    res: vec4<u32>,
-    // brick slot grid (word in aux), first pool slot, first z slice in
-    // `indirection`, 0
-    offsets: vec4<u32>,
-    // skip dims xyz, skip offset
-    skip: vec4<u32>,
-    skip_cell: vec4<f32>,
-};
 
 @group(0) @binding(0) var<uniform> view: View;
 @group(0) @binding(1) var<storage, read> layers: array<Layer>;
@@ -102,6 +89,8 @@ struct FieldInfo {
 // Activated density per pool texel, f16 pairs (pack.rs
 // `PoolTextures::sigma`): what masks weight each corner's bit by.
 @group(0) @binding(16) var<storage, read> pool_sigma: array<u32>;
+// The view's baked SH colours (sh_bake.wgsl), for layers with LAYER_BAKED.
+@group(0) @binding(17) var baked: texture_3d<f32>;
 
 // The pipeline is specialised on a bound of the layer count (1, 2, 4 or
 // src/app/gpu/pack.rs MAX_LAYERS): the per-layer loops run a constant
@@ -117,13 +106,14 @@ const MAX_LAYERS: u32 = #{MAX_LAYERS}u;
 const MAX_ITERATIONS: u32 = 1000000u;
 const INF: f32 = 3.0e38;
 
-const COLOR_SPARSE: u32 = 1u;
+
 const COLOR_SH: u32 = 2u;
 const MASK_KEEP: u32 = 1u;
 const MASK_REMOVE: u32 = 2u;
 const LAYER_COLOR_EDIT: u32 = 1u;
 const LAYER_HIGHLIGHT: u32 = 2u;
 const LAYER_DIM: u32 = 4u;
+const LAYER_BAKED: u32 = 8u;
 // pool.rs BRICK_CELLS, BRICK, BRICK_WORDS.
 const BRICK_CELLS: u32 = 7u;
 const BRICK: u32 = 8u;
@@ -235,63 +225,58 @@ fn rgb_at(f: FieldInfo, c: Cell) -> vec3<f32> {
     return clamp(acc, vec3<f32>(0.0), vec3<f32>(1.0));
 }
 
-// Degree-2 real SH basis for a unit direction (src/field/sh.rs).
-fn sh_basis(d: vec3<f32>) -> array<f32, 9> {
-    let x = d.x;
-    let y = d.y;
-    let z = d.z;
-    return array<f32, 9>(
-        0.2820948,
-        -0.4886025 * y,
-        0.4886025 * z,
-        -0.4886025 * x,
-        1.0925484 * x * y,
-        -1.0925484 * y * z,
-        0.31539157 * (2.0 * z * z - x * x - y * y),
-        -1.0925484 * x * z,
-        0.5462742 * (x * x - y * y),
-    );
-}
 
 // SH colour: the coefficients interpolated by the filter (channel 27 is
-// the sum of the stored corners' weights, pack.rs `sh_texel`; sparse
-// appearances renormalise by it), dotted with the basis, then a sigmoid.
+// the sum of the stored corners' weights, pack.rs `sh_texel`), dotted with
+// the basis, then a sigmoid (common.wgsl `sh_colour`).
 fn sh_at(f: FieldInfo, c: Cell, dir: vec3<f32>) -> vec3<f32> {
-    let b = sh_basis(dir);
-    let t0 = textureSampleLevel(sh0, atlas_sampler, c.uvw, 0.0);
-    let t1 = textureSampleLevel(sh1, atlas_sampler, c.uvw, 0.0);
-    let t2 = textureSampleLevel(sh2, atlas_sampler, c.uvw, 0.0);
-    let t3 = textureSampleLevel(sh3, atlas_sampler, c.uvw, 0.0);
-    let t4 = textureSampleLevel(sh4, atlas_sampler, c.uvw, 0.0);
-    let t5 = textureSampleLevel(sh5, atlas_sampler, c.uvw, 0.0);
     let t6 = textureSampleLevel(sh6, atlas_sampler, c.uvw, 0.0);
-    // Channels 0..8 red, 9..17 green, 18..26 blue.
-    let r = b[0] * t0.x + b[1] * t0.y + b[2] * t0.z + b[3] * t0.w + b[4] * t1.x + b[5] * t1.y + b[6] * t1.z
-        + b[7] * t1.w + b[8] * t2.x;
-    let g = b[0] * t2.y + b[1] * t2.z + b[2] * t2.w + b[3] * t3.x + b[4] * t3.y + b[5] * t3.z + b[6] * t3.w
-        + b[7] * t4.x + b[8] * t4.y;
-    let bl = b[0] * t4.z + b[1] * t4.w + b[2] * t5.x + b[3] * t5.y + b[4] * t5.z + b[5] * t5.w + b[6] * t6.x
-        + b[7] * t6.y + b[8] * t6.z;
-    let wsum = t6.w;
-    var acc = vec3<f32>(r, g, bl);
-    if wsum <= 1e-6 {
-        acc = vec3<f32>(0.0);
-    } else if (f.res.w & COLOR_SPARSE) != 0u {
-        acc = acc / wsum;
-    }
-    return vec3<f32>(1.0) / (vec3<f32>(1.0) + exp(-acc));
+    let logits = sh_dot(
+        sh_basis(dir),
+        textureSampleLevel(sh0, atlas_sampler, c.uvw, 0.0),
+        textureSampleLevel(sh1, atlas_sampler, c.uvw, 0.0),
+        textureSampleLevel(sh2, atlas_sampler, c.uvw, 0.0),
+        textureSampleLevel(sh3, atlas_sampler, c.uvw, 0.0),
+        textureSampleLevel(sh4, atlas_sampler, c.uvw, 0.0),
+        textureSampleLevel(sh5, atlas_sampler, c.uvw, 0.0),
+        t6,
+    );
+    return sh_colour(f, logits, t6.w);
 }
 
-fn color_at(f: FieldInfo, c: Cell, dir: vec3<f32>) -> vec3<f32> {
+#ifdef BAKED
+// SH colour from the view's bake (sh_bake.wgsl): per texel the SH logits
+// for the direction from the camera, and the stored weight; the filter
+// interpolates them as it would the coefficients (the dot product is
+// linear), so one sample replaces seven. The direction is the camera's to
+// each grid point rather than the ray's, a difference below the cell size
+// over the viewing distance.
+fn baked_at(f: FieldInfo, c: Cell) -> vec3<f32> {
+    let q = textureSampleLevel(baked, atlas_sampler, c.uvw, 0.0);
+    return sh_colour(f, q.xyz, q.w);
+}
+#endif
+
+fn color_at(k: u32, f: FieldInfo, c: Cell) -> vec3<f32> {
+#ifdef BAKED
+    if (linfo[k].w & LAYER_BAKED) != 0u {
+        return baked_at(f, c);
+    }
+#endif
 #ifdef SH
 #ifdef RGB
     if (f.res.w & COLOR_SH) == 0u {
         return rgb_at(f, c);
     }
 #endif
-    return sh_at(f, c, dir);
+    return sh_at(f, c, normalize(lo_dir[k]));
 #else
+#ifdef RGB
     return rgb_at(f, c);
+#else
+    // (Every layer is baked.)
+    return vec3<f32>(0.0);
+#endif
 #endif
 }
 
@@ -530,7 +515,7 @@ fn shade(n: u32, t: f32, sum: f32) -> vec3<f32> {
         }
         let info = linfo[k];
         let f = finfo[k];
-        var ck = color_at(f, cells[k], normalize(lo_dir[k]));
+        var ck = color_at(k, f, cells[k]);
 #ifdef COLOR_EDIT
         if (info.w & LAYER_COLOR_EDIT) != 0u {
             ck = apply_edit(k, ck);

@@ -20,6 +20,7 @@
 //! `view::prepare_views` decides per view whether to march and builds the
 //! bind groups; `view::raymarch_pass` runs in the `Core3d` schedule.
 
+mod bake;
 pub mod pack;
 pub mod pool;
 mod view;
@@ -176,6 +177,14 @@ impl Plugin for RayMarchPlugin {
             include_str!("../../../shaders/composite.wgsl"),
             "shaders/composite.wgsl",
         ));
+        let common = shaders.add(Shader::from_wgsl(
+            include_str!("../../../shaders/common.wgsl"),
+            "shaders/common.wgsl",
+        ));
+        let bake = shaders.add(Shader::from_wgsl(
+            include_str!("../../../shaders/sh_bake.wgsl"),
+            "shaders/sh_bake.wgsl",
+        ));
         let status = SharedStatus::default();
         app.init_resource::<MarchScene>()
             .insert_resource(status.clone())
@@ -191,12 +200,17 @@ impl Plugin for RayMarchPlugin {
             .insert_resource(RayMarchShaders {
                 march: shader,
                 composite,
+                bake,
+                _common: common,
             })
             .insert_resource(status)
             .init_resource::<GpuSceneCache>()
             .init_resource::<SpecializedRenderPipelines<RayMarchPipeline>>()
             .init_resource::<SpecializedRenderPipelines<view::CompositePipeline>>()
-            .add_systems(RenderStartup, (init_pipeline, view::init_composite_pipeline))
+            .add_systems(
+                RenderStartup,
+                (init_pipeline, view::init_composite_pipeline, bake::init_bake_pipeline),
+            )
             .add_systems(
                 Render,
                 (
@@ -239,6 +253,10 @@ fn keep_running_on_gpu_errors(error: &RenderError, main: &mut World, render: &mu
 struct RayMarchShaders {
     march: Handle<Shader>,
     composite: Handle<Shader>,
+    bake: Handle<Shader>,
+    /// shaders/common.wgsl, which the others import (held so that it stays
+    /// loaded).
+    _common: Handle<Shader>,
 }
 
 #[derive(Resource)]
@@ -273,6 +291,8 @@ fn init_pipeline(mut commands: Commands, shaders: Res<RayMarchShaders>, fullscre
                 sampler(SamplerBindingType::Filtering),
                 texture_3d(TextureSampleType::Uint),
                 storage(),
+                // The view's baked SH colours.
+                texture_3d(TextureSampleType::Float { filterable: true }),
             ),
         ),
     );
@@ -313,8 +333,10 @@ struct MarchKey {
     bound: u32,
     /// Some layer's field has RGB colours (`RGB`).
     rgb: bool,
-    /// Some layer's field has SH colours (`SH`).
+    /// Some layer's field has SH colours that it evaluates per sample (`SH`).
     sh: bool,
+    /// Some layer's SH colours come from the view's bake (`BAKED`).
+    baked: bool,
     /// Some layer has a keep or remove mask (`MASKS`).
     masks: bool,
     /// Some layer has an appearance edit (`COLOR_EDIT`).
@@ -331,12 +353,14 @@ impl MarchKey {
         let colour_kind = |l: &GpuLayer| fields.get(l.info[0] as usize).map_or(0, |f| f.res[3]);
         let flags = |bits: u32| layers.iter().any(|l| l.info[3] & bits != 0);
         let highlight = layers.iter().any(|l| l.highlight[0] != 0);
-        let sh = layers.iter().any(|l| colour_kind(l) & pack::COLOR_SH != 0);
+        let any_sh = layers.iter().any(|l| colour_kind(l) & pack::COLOR_SH != 0);
+        let baked = |l: &GpuLayer| l.info[3] & pack::LAYER_BAKED != 0;
         MarchKey {
             bound: layer_bound(layers.len()),
             // (A scene without layers draws the background with the RGB variant.)
-            rgb: !sh || layers.iter().any(|l| colour_kind(l) & pack::COLOR_SH == 0),
-            sh,
+            rgb: !any_sh || layers.iter().any(|l| colour_kind(l) & pack::COLOR_SH == 0),
+            sh: layers.iter().any(|l| colour_kind(l) & pack::COLOR_SH != 0 && !baked(l)),
+            baked: layers.iter().any(baked),
             masks: layers.iter().any(|l| l.info[1] != pack::MASK_ALL),
             edits: flags(pack::LAYER_COLOR_EDIT),
             overlay: highlight || flags(pack::LAYER_HIGHLIGHT | pack::LAYER_DIM),
@@ -348,6 +372,7 @@ impl MarchKey {
         let flags = [
             (self.rgb, "RGB"),
             (self.sh, "SH"),
+            (self.baked, "BAKED"),
             (self.masks, "MASKS"),
             (self.edits, "COLOR_EDIT"),
             (self.overlay, "OVERLAY"),
@@ -465,6 +490,12 @@ struct AtlasTextures {
     size: [usize; 3],
     /// Pool bricks per axis.
     bricks: [usize; 3],
+    /// Per pool slot its field and brick ([`pack::pool_owners`]), for the
+    /// SH bake, and the number of slots in use.
+    owners: Buffer,
+    slots: usize,
+    /// Bound where a view has no baked colours (no SH field shown).
+    no_bake: TextureView,
 }
 
 /// A 3D texture of `size` holding `data` (texels x fastest).
@@ -532,8 +563,9 @@ fn upload_pool(
     queue: &RenderQueue,
     t: &pack::PoolTextures,
     ind: &pack::Indirection,
-    bricks: [usize; 3],
-) -> AtlasTextures {
+    plan: &pool::PoolPlan,
+) -> crate::Result<AtlasTextures> {
+    let bricks = plan.layout.bricks;
     let size = t.size;
     let indirection = pool_texture(
         device,
@@ -575,7 +607,9 @@ fn upload_pool(
         min_filter: FilterMode::Linear,
         ..default()
     });
-    AtlasTextures {
+    let owners = pack::pool_owners(plan);
+    let no_bake = bake::bake_texture(device, [1, 1, 1]);
+    Ok(AtlasTextures {
         density,
         rgb,
         sh,
@@ -583,7 +617,10 @@ fn upload_pool(
         indirection,
         size,
         bricks,
-    }
+        owners: storage_buffer(device, "isrf_pool_owners", bytemuck::cast_slice(&owners))?,
+        slots: plan.layout.slots.len(),
+        no_bake,
+    })
 }
 
 fn prepare_scene(
@@ -680,7 +717,7 @@ fn upload_fields(
         info.offsets[2] = *z0 as u32;
     }
     let textures = pack::pool_textures(&drawn, &plan);
-    cache.atlas = Some(upload_pool(device, queue, &textures, &ind, plan.layout.bricks));
+    cache.atlas = Some(upload_pool(device, queue, &textures, &ind, &plan)?);
     cache.aux_buffer = Some(storage_buffer(device, "isrf_aux", bytemuck::cast_slice(&aux))?);
     cache.sigma_buffer = Some(storage_buffer(
         device,
@@ -800,7 +837,8 @@ fn update_cache(
     let (offs, total) = pack::bitmap_offsets(&mask_word_counts(cache, &bitmaps));
     update_bitmaps(cache, bitmaps, &offs, total, device, queue, status)?;
     // Layers: small, repacked every frame.
-    let layers = pack::pack_layers(scene, &wanted, &cache.bitmaps, &offs, &march.overlay)?;
+    let mut layers = pack::pack_layers(scene, &wanted, &cache.bitmaps, &offs, &march.overlay)?;
+    pack::mark_baked(&mut layers, &cache.field_infos);
     let bytes: &[u8] = bytemuck::cast_slice(&layers);
     let fits = cache
         .layer_buffer

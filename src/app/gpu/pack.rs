@@ -39,6 +39,8 @@ pub const LAYER_COLOR_EDIT: u32 = 1;
 pub const LAYER_HIGHLIGHT: u32 = 2;
 /// Editor overlay: dim this layer.
 pub const LAYER_DIM: u32 = 4;
+/// The layer's SH colours come from the view's bake ([`mark_baked`]).
+pub const LAYER_BAKED: u32 = 8;
 
 pub const MASK_ALL: u32 = 0;
 pub const MASK_KEEP: u32 = 1;
@@ -56,7 +58,7 @@ pub struct GpuView {
     pub intrinsics: [f32; 4],
     /// Background colour (rgb).
     pub background: [f32; 4],
-    /// step, min transmittance, 0, 0.
+    /// step, min transmittance, step kind (0: cells, 1: world), 0.
     pub march: [f32; 4],
     /// layer count, 0, 0, 0.
     pub counts: [u32; 4],
@@ -64,6 +66,16 @@ pub struct GpuView {
     pub atlas: [f32; 4],
     /// The pool's bricks per axis (xyz), 0.
     pub pool: [u32; 4],
+}
+
+/// The SH bake's parameters for one view (uniform, shaders/sh_bake.wgsl).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct GpuBake {
+    /// The pool's bricks per axis (xyz), pool slots to bake.
+    pub pool: [u32; 4],
+    /// Per field: the camera in the field's frame; w = 1 where baked.
+    pub cams: [[f32; 4]; MAX_LAYERS],
 }
 
 /// One layer (storage buffer, array).
@@ -303,8 +315,72 @@ pub fn pack_field(field: &Field) -> Result<PackedField> {
 pub fn pool_texel_bytes(fields: &[&Field]) -> usize {
     let sh = fields.iter().any(|f| matches!(f.appearance, Appearance::Sh2(_)));
     let rgb = fields.iter().any(|f| matches!(f.appearance, Appearance::Rgb(_)));
-    // Density texture and activated density (`PoolTextures::sigma`).
-    4 + if rgb { 4 } else { 0 } + if sh { 8 * SH_TEXTURES } else { 0 }
+    // Density texture and activated density (`PoolTextures::sigma`); SH
+    // textures and a view's baked colours.
+    4 + if rgb { 4 } else { 0 } + if sh { 8 * SH_TEXTURES + 8 } else { 0 }
+}
+
+/// Per pool slot, for the SH bake: its field and brick position in the
+/// field's brick grid (`x | y << 10 | z << 20`); `u32::MAX` for unused
+/// slots.
+pub fn pool_owners(plan: &PoolPlan) -> Vec<[u32; 2]> {
+    let mut out = vec![[u32::MAX, 0]; plan.layout.slots.len().max(1)];
+    for (o, &(f, b)) in out.iter_mut().zip(&plan.layout.slots) {
+        let Some(bricks) = plan.fields.get(f as usize) else {
+            continue;
+        };
+        let [nx, ny, _] = bricks.dims;
+        let b = b as usize;
+        let (x, y, z) = (b % nx, b / nx % ny, b / (nx * ny));
+        *o = [f, (x | y << POOL_BITS | z << (2 * POOL_BITS)) as u32];
+    }
+    out
+}
+
+/// Flags the layers whose SH colours the view's bake serves: per SH field
+/// the bake uses the camera in the frame of the field's first layer, so
+/// the layers of that field in the same frame share it; a layer moved
+/// away from it (a moved object) keeps evaluating its SH per sample.
+pub fn mark_baked(layers: &mut [GpuLayer], fields: &[GpuField]) {
+    for k in 0..layers.len() {
+        let f = layers[k].info[0] as usize;
+        let sh = fields.get(f).is_some_and(|g| g.res[3] & COLOR_SH != 0);
+        let first = layers.iter().position(|l| l.info[0] as usize == f).unwrap_or(k);
+        if sh && f < MAX_LAYERS && layers[first].to_local == layers[k].to_local {
+            layers[k].info[3] |= LAYER_BAKED;
+        }
+    }
+}
+
+/// The bake's parameters for a camera at `origin` (world): per baked field
+/// the camera in the frame of its first layer ([`mark_baked`]).
+pub fn bake_params(layers: &[GpuLayer], pool_bricks: [usize; 3], slots: usize, origin: Vec3) -> GpuBake {
+    let mut b = GpuBake {
+        pool: [
+            pool_bricks[0] as u32,
+            pool_bricks[1] as u32,
+            pool_bricks[2] as u32,
+            slots as u32,
+        ],
+        ..Default::default()
+    };
+    for l in layers.iter().filter(|l| l.info[3] & LAYER_BAKED != 0) {
+        let f = l.info[0] as usize;
+        if f < MAX_LAYERS && b.cams[f][3] == 0.0 {
+            let c = Mat4::from_cols_array_2d(&l.to_local).transform_point3(origin);
+            b.cams[f] = [c.x, c.y, c.z, 1.0];
+        }
+    }
+    b
+}
+
+/// Workgroups of the bake (shaders/sh_bake.wgsl): 8 per brick along x,
+/// the slots along y then z (at most 65535 per dimension).
+pub fn bake_dispatch(slots: usize) -> [u32; 3] {
+    const MAX: usize = 65535;
+    let slots = slots.max(1);
+    let y = slots.min(MAX);
+    [8, y as u32, slots.div_ceil(y) as u32]
 }
 
 /// The pool textures' contents (x fastest, [`PoolLayout::fill`]); the RGB
@@ -867,5 +943,60 @@ mod tests {
         assert!((layers[1].box_max[2] - 0.125).abs() < 1e-6);
         let m = Mat4::from_cols_array_2d(&layers[1].to_local);
         assert!((m.transform_point3(Vec3::X) - Vec3::ZERO).length() < 1e-6);
+    }
+
+    #[test]
+    fn the_bake_serves_sh_layers_in_their_fields_first_frame() {
+        let sh = GpuField {
+            res: [17, 17, 17, COLOR_SH],
+            ..Default::default()
+        };
+        let rgb = GpuField::default();
+        let at = |field: u32, x: f32| GpuLayer {
+            to_local: affine_cols(&Affine3A::from_translation(Vec3::new(x, 0.0, 0.0))),
+            info: [field, MASK_ALL, 0, 0],
+            ..Default::default()
+        };
+        // Field 0 (SH): the rest in place, an object moved, a second copy
+        // in place; field 1 (RGB); field 2 (SH) moved as a whole.
+        let mut layers = vec![at(0, 0.0), at(0, 1.0), at(1, 0.0), at(0, 0.0), at(2, 2.0)];
+        mark_baked(&mut layers, &[sh, rgb, sh]);
+        let baked: Vec<bool> = layers.iter().map(|l| l.info[3] & LAYER_BAKED != 0).collect();
+        assert_eq!(baked, [true, false, false, true, true]);
+        // Cameras in each baked field's frame (the layers translate by x).
+        let b = bake_params(&layers, [3, 4, 5], 42, Vec3::new(0.5, 1.0, 2.0));
+        assert_eq!(b.pool, [3, 4, 5, 42]);
+        assert_eq!(b.cams[0], [0.5, 1.0, 2.0, 1.0]);
+        assert_eq!(b.cams[1], [0.0; 4]);
+        assert_eq!(b.cams[2], [2.5, 1.0, 2.0, 1.0]);
+    }
+
+    #[test]
+    fn bake_workgroups_cover_every_slot_within_dispatch_limits() {
+        for slots in [0usize, 1, 7, 65535, 65536, 200_001] {
+            let [x, y, z] = bake_dispatch(slots);
+            assert_eq!(x as usize * 64, pool::BRICK_TEXELS);
+            assert!(y <= 65535 && z <= 65535);
+            assert!(y as usize * z as usize >= slots.max(1), "{slots}");
+            assert!(
+                (y as usize) * (z as usize - 1) < slots.max(1),
+                "{slots}: a whole z layer is spare"
+            );
+        }
+    }
+
+    #[test]
+    fn pool_owners_name_each_slots_field_and_brick() {
+        let f = ball();
+        let plan = pool::plan(&[&f.density, &f.density], 2, 2048, 1 << 30, usize::MAX).unwrap();
+        let owners = pool_owners(&plan);
+        assert_eq!(owners.len(), plan.layout.slots.len());
+        for (o, &(field, brick)) in owners.iter().zip(&plan.layout.slots) {
+            assert_eq!(o[0], field);
+            let [nx, ny, _] = plan.fields[field as usize].dims;
+            let m = (1 << POOL_BITS) - 1;
+            let (x, y, z) = (o[1] & m, o[1] >> POOL_BITS & m, o[1] >> (2 * POOL_BITS));
+            assert_eq!(x as usize + nx * (y as usize + ny * z as usize), brick as usize);
+        }
     }
 }

@@ -8,6 +8,7 @@
 //! [`RayMarchCamera::render_scale`] below 1 marches a quarter of the pixels
 //! while the camera moves; the composite pass upsamples it.
 
+use super::bake::{self, BakeJob, BakePipeline, BakedColours};
 use super::pack::GpuView;
 use super::{
     opaque_target, GpuSceneCache, MarchKey, RayMarchCamera, RayMarchPipeline, RayMarchShaders, SharedStatus,
@@ -121,6 +122,8 @@ pub(super) struct ViewDraw {
     /// Bind group, pipeline and inputs (`MarchTargets::shown`) of the
     /// march, when it has to run.
     march: Option<(BindGroup, CachedRenderPipelineId, Vec<u8>)>,
+    /// The SH bake that runs before the march, when it marches SH layers.
+    bake: Option<(BakeJob, bevy::render::render_resource::CachedComputePipelineId)>,
     composite: CachedRenderPipelineId,
     scene_ptr: usize,
     /// The textures hold a march at the viewport's full size.
@@ -225,6 +228,7 @@ fn march_bind_group(
     pipeline: &RayMarchPipeline,
     cache: &GpuSceneCache,
     gv: &GpuView,
+    baked: &TextureView,
 ) -> Option<BindGroup> {
     let uniform = device.create_buffer_with_data(&BufferInitDescriptor {
         label: Some("isrf_view"),
@@ -263,6 +267,7 @@ fn march_bind_group(
             &atlas.sampler,
             &atlas.indirection,
             sigma.as_entire_binding(),
+            baked,
         )),
     ))
 }
@@ -289,6 +294,7 @@ type Views<'w, 's> = Query<
         &'static RayMarchCamera,
         Option<&'static Msaa>,
         Option<&'static MarchTargets>,
+        Option<&'static BakedColours>,
     ),
 >;
 
@@ -297,7 +303,11 @@ pub(super) fn prepare_views(
     mut commands: Commands,
     views: Views,
     cache: Res<GpuSceneCache>,
-    pipelines: (Option<Res<RayMarchPipeline>>, Option<Res<CompositePipeline>>),
+    pipelines: (
+        Option<Res<RayMarchPipeline>>,
+        Option<Res<CompositePipeline>>,
+        Option<Res<BakePipeline>>,
+    ),
     mut specialized: (
         ResMut<SpecializedRenderPipelines<RayMarchPipeline>>,
         ResMut<SpecializedRenderPipelines<CompositePipeline>>,
@@ -306,10 +316,10 @@ pub(super) fn prepare_views(
     device: Res<RenderDevice>,
     status: Res<SharedStatus>,
 ) {
-    let (Some(march_pipeline), Some(composite_pipeline)) = pipelines else {
+    let (Some(march_pipeline), Some(composite_pipeline), Some(bake_pipeline)) = pipelines else {
         return;
     };
-    for (entity, view, cam, msaa, targets) in &views {
+    for (entity, view, cam, msaa, targets, baked) in &views {
         if !cache.ready {
             commands.entity(entity).remove::<ViewDraw>();
             continue;
@@ -322,7 +332,9 @@ pub(super) fn prepare_views(
                 .1
                 .specialize(&pipeline_cache, &composite_pipeline, (view.target_format, samples));
         // (Both checked: each reports its compile error.)
-        let march_ready = pipeline_ready(&pipeline_cache, march_id, &status);
+        let bakes = variant.baked;
+        let march_ready = pipeline_ready(&pipeline_cache, march_id, &status)
+            && (!bakes || bake::ready(&pipeline_cache, &bake_pipeline, &status));
         if !pipeline_ready(&pipeline_cache, composite_id, &status) {
             commands.entity(entity).remove::<ViewDraw>();
             continue;
@@ -335,7 +347,16 @@ pub(super) fn prepare_views(
         };
         // Until a variant the scene now needs has compiled, the view keeps
         // showing its last image (not counted as showing this scene).
-        let (mut march, mut scene_ptr, full) = (None, 0, march_ready && size == viewport);
+        let (mut march, mut bake_job, mut scene_ptr, full) = (None, None, 0, march_ready && size == viewport);
+        // The view's baked colours, at the pool's size.
+        let baked = match (cache.atlas.as_ref(), baked) {
+            (Some(a), Some(b)) if !bakes || b.size == a.size => Some(b.clone()),
+            (Some(a), _) if bakes => Some(BakedColours {
+                size: a.size,
+                view: bake::bake_texture(&device, a.size),
+            }),
+            _ => None,
+        };
         if march_ready {
             scene_ptr = cache.scene_ptr;
             let gv = gpu_view(view, cam, &cache, size);
@@ -343,14 +364,36 @@ pub(super) fn prepare_views(
             key.extend_from_slice(bytemuck::cast_slice(&cache.layers));
             key.extend_from_slice(&cache.generation.to_le_bytes());
             if !targets.shown.lock().is_ok_and(|s| s.as_ref() == Some(&key)) {
-                let Some(bg) = march_bind_group(&device, &pipeline_cache, &march_pipeline, &cache, &gv) else {
+                let (Some(atlas), Some(fields)) = (cache.atlas.as_ref(), cache.field_buffer.as_ref()) else {
                     continue;
                 };
+                let target = match (&baked, bakes) {
+                    (Some(b), true) => &b.view,
+                    _ => &atlas.no_bake,
+                };
+                let Some(bg) = march_bind_group(&device, &pipeline_cache, &march_pipeline, &cache, &gv, target) else {
+                    continue;
+                };
+                let origin = Vec3::from_slice(&gv.c2w[3][..3]);
+                bake_job = bake::job(
+                    &device,
+                    &pipeline_cache,
+                    &bake_pipeline,
+                    &cache.layers,
+                    fields,
+                    atlas,
+                    target,
+                    origin,
+                )
+                .map(|j| (j, bake_pipeline.id));
                 march = Some((bg, march_id, key));
             }
         }
         let has_image = targets.shown.lock().is_ok_and(|s| s.is_some());
         let mut view_entity = commands.entity(entity);
+        if let Some(b) = baked {
+            view_entity.insert(b);
+        }
         if march.is_none() && !has_image {
             view_entity.insert(targets).remove::<ViewDraw>();
             continue;
@@ -359,6 +402,7 @@ pub(super) fn prepare_views(
             targets,
             ViewDraw {
                 march,
+                bake: bake_job,
                 composite: composite_id,
                 scene_ptr,
                 full,
@@ -400,6 +444,21 @@ pub(super) fn raymarch_pass(
         let Some(pipeline) = pipeline_cache.get_render_pipeline(*id) else {
             return;
         };
+        if let Some((job, bake_id)) = &draw.bake {
+            let Some(bake) = pipeline_cache.get_compute_pipeline(*bake_id) else {
+                return;
+            };
+            let mut pass =
+                ctx.command_encoder()
+                    .begin_compute_pass(&bevy::render::render_resource::ComputePassDescriptor {
+                        label: Some("isrf_sh_bake_pass"),
+                        timestamp_writes: None,
+                    });
+            pass.set_pipeline(bake);
+            pass.set_bind_group(0, &job.bind_group, &[]);
+            let [x, y, z] = job.groups;
+            pass.dispatch_workgroups(x, y, z);
+        }
         let attachments = [target_attachment(&targets.color), target_attachment(&targets.depth)];
         let mut pass = ctx.begin_tracked_render_pass(RenderPassDescriptor {
             label: Some("isrf_raymarch_pass"),
