@@ -39,7 +39,23 @@ enum Command {
     Edit(cli::edit::Args),
 }
 
+/// `isrf info F | head` must end quietly when its reader goes away, as Unix
+/// tools do: Rust ignores SIGPIPE, so a print to a closed pipe fails and
+/// `println!` panics; the default action ends the process instead.
+#[cfg(unix)]
+fn restore_sigpipe() {
+    // SAFETY: setting a signal's disposition to its default at startup,
+    // before any thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
+#[cfg(not(unix))]
+fn restore_sigpipe() {}
+
 fn main() {
+    restore_sigpipe();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Info(a) => cli::info::run(a),

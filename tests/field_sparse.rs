@@ -275,3 +275,26 @@ fn broken_sparse_files_are_refused_with_a_message() {
     let e = Field::load(&bad).unwrap_err().to_string();
     assert!(e.contains("newer"), "{e}");
 }
+
+#[cfg(unix)]
+#[test]
+fn info_ends_quietly_when_its_reader_goes_away() {
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("s.safetensors");
+    blob_model(13).to_sparse_field().save(&path).unwrap();
+    // The reader closes the pipe before isrf writes (as `| head -0` would).
+    let mut child = Command::new(env!("CARGO_BIN_EXE_isrf"))
+        .arg("info")
+        .arg(&path)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(out.status.signal(), Some(libc::SIGPIPE), "{:?}: {stderr}", out.status);
+}

@@ -46,23 +46,44 @@ pub fn stroke_pixels(s: &Stroke) -> Result<Vec<(u32, u32)>> {
     let (w, h) = (s.camera.intrinsics.width as i64, s.camera.intrinsics.height as i64);
     let mut hit = vec![false; (w * h) as usize];
     let r = s.radius as i64;
-    let mut stamp = |p: Vec2| {
-        let (cx, cy) = (p.x.floor() as i64, p.y.floor() as i64);
-        for y in (cy - r).max(0)..=(cy + r).min(h - 1) {
-            for x in (cx - r).max(0)..=(cx + r).min(w - 1) {
+    // Coordinates are f64 and saturate when cast: a point 1e30 px away
+    // stamps nothing instead of overflowing.
+    let mut stamp = |x: f64, y: f64| {
+        let (cx, cy) = (x.floor() as i64, y.floor() as i64);
+        for y in cy.saturating_sub(r).max(0)..=cy.saturating_add(r).min(h - 1) {
+            for x in cx.saturating_sub(r).max(0)..=cx.saturating_add(r).min(w - 1) {
                 hit[(y * w + x) as usize] = true;
             }
         }
     };
-    stamp(s.points[0]);
+    let at = |p: Vec2| (p.x as f64, p.y as f64);
+    let (x0, y0) = at(s.points[0]);
+    stamp(x0, y0);
+    // The box a stamp centre must be in to touch the image.
+    let reach = [
+        -(r as f64) - 1.0,
+        (w + r) as f64 + 1.0,
+        -(r as f64) - 1.0,
+        (h + r) as f64 + 1.0,
+    ];
     for pair in s.points.windows(2) {
         if !s.joined {
-            stamp(pair[1]);
+            let (x, y) = at(pair[1]);
+            stamp(x, y);
             continue;
         }
-        let n = (pair[1] - pair[0]).length().ceil().max(1.0) as usize;
-        for i in 1..=n {
-            stamp(pair[0].lerp(pair[1], i as f32 / n as f32));
+        // Only the part of the segment near the image is walked, one step
+        // per pixel: its length is bounded by the image's, however far the
+        // points lie.
+        let (a, b) = (at(pair[0]), at(pair[1]));
+        let Some((t0, t1)) = clip_segment(a, b, reach) else {
+            continue;
+        };
+        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+        let n = ((t1 - t0) * dx.hypot(dy)).ceil().max(1.0) as usize;
+        for i in 0..=n {
+            let t = t0 + (t1 - t0) * i as f64 / n as f64;
+            stamp(a.0 + t * dx, a.1 + t * dy);
         }
     }
     let px: Vec<(u32, u32)> = (0..(w * h) as usize)
@@ -77,6 +98,24 @@ pub fn stroke_pixels(s: &Stroke) -> Result<Vec<(u32, u32)>> {
         h
     );
     Ok(px)
+}
+
+/// The parameter interval `[t0, t1]` ⊆ [0, 1] of segment a→b inside the
+/// box `[x_min, x_max, y_min, y_max]` (Liang–Barsky), `None` if it misses.
+fn clip_segment(a: (f64, f64), b: (f64, f64), bx: [f64; 4]) -> Option<(f64, f64)> {
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for (p, d, lo, hi) in [(a.0, b.0 - a.0, bx[0], bx[1]), (a.1, b.1 - a.1, bx[2], bx[3])] {
+        if d == 0.0 {
+            if p < lo || p > hi {
+                return None;
+            }
+            continue;
+        }
+        let (ta, tb) = ((lo - p) / d, (hi - p) / d);
+        t0 = t0.max(ta.min(tb));
+        t1 = t1.min(ta.max(tb));
+    }
+    (t0 <= t1).then_some((t0, t1))
 }
 
 /// Rendered features at a stroke's pixels, each scaled to unit length
@@ -421,4 +460,62 @@ pub fn scribble_stroke(path: &Path, camera: Camera, polarity: Polarity, object: 
         object: object.into(),
         joined: false,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    fn stroke(points: &[[f32; 2]], radius: u32, w: u32, h: u32) -> Stroke {
+        Stroke {
+            camera: Camera::look_at(Intrinsics::from_fov_x(w, h, 0.8), Vec3::Z * 3.0, Vec3::ZERO, Vec3::Y),
+            points: points.iter().map(|&p| Vec2::from(p)).collect(),
+            radius,
+            polarity: Polarity::Positive,
+            object: "o".into(),
+            joined: true,
+        }
+    }
+
+    #[test]
+    fn a_segment_from_far_away_covers_what_it_crosses() {
+        // Row 2 from far left to far right, brush radius 1: rows 1..=3.
+        let want: Vec<(u32, u32)> = (1..=3).flat_map(|y| (0..8).map(move |x| (x, y))).collect();
+        for far in [100.0, 1e6, 1e9] {
+            let s = stroke(&[[-far, 2.5], [far, 2.5]], 1, 8, 8);
+            assert_eq!(stroke_pixels(&s).unwrap(), want, "endpoints at ±{far}");
+        }
+        // A diagonal through the whole image from far outside.
+        let s = stroke(&[[-1e5, -1e5], [1e5, 1e5]], 0, 6, 6);
+        assert_eq!(stroke_pixels(&s).unwrap(), (0..6).map(|i| (i, i)).collect::<Vec<_>>());
+        // Beyond what f64 resolves at the image, the walk still ends at
+        // once with pixels on the image (one step, not 1e30).
+        for far in [1e12, 1e30, f32::MAX] {
+            let s = stroke(&[[-far, 2.5], [far, 2.5]], 1, 8, 8);
+            let px = stroke_pixels(&s).unwrap();
+            assert!(px.iter().all(|&(x, y)| x < 8 && (1..=3).contains(&y)), "±{far}: {px:?}");
+        }
+    }
+
+    #[test]
+    fn points_far_off_the_image_are_an_error_not_a_panic() {
+        for p in [[1e30, 0.0], [-1e30, 0.0], [0.0, 1e30], [0.0, -f32::MAX]] {
+            let s = stroke(&[p], 3, 4, 4);
+            let e = stroke_pixels(&s).unwrap_err().to_string();
+            assert!(e.contains("off the 4x4 image"), "{p:?}: {e}");
+        }
+        // A segment passing beside the image stamps nothing either.
+        let s = stroke(&[[-1e12, -50.0], [1e12, -50.0]], 3, 4, 4);
+        assert!(stroke_pixels(&s).is_err());
+    }
+
+    #[test]
+    fn clipping_keeps_the_part_inside_the_box() {
+        let b = [0.0, 10.0, 0.0, 10.0];
+        assert_eq!(clip_segment((-10.0, 5.0), (30.0, 5.0), b), Some((0.25, 0.5)));
+        assert_eq!(clip_segment((2.0, 2.0), (3.0, 3.0), b), Some((0.0, 1.0)));
+        assert_eq!(clip_segment((-5.0, 20.0), (15.0, 20.0), b), None);
+        assert_eq!(clip_segment((5.0, -1.0), (5.0, -1.0), b), None);
+    }
 }
