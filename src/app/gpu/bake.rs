@@ -17,9 +17,8 @@ use bevy::render::render_resource::binding_types::{
 };
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, BufferInitDescriptor, BufferUsages,
-    CachedComputePipelineId, CachedPipelineState, ComputePipelineDescriptor, Extent3d, PipelineCache, ShaderStages,
-    StorageTextureAccess, TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType, TextureUsages,
-    TextureView,
+    CachedComputePipelineId, CachedPipelineState, ComputePipelineDescriptor, PipelineCache, ShaderStages,
+    StorageTextureAccess, TextureFormat, TextureSampleType, TextureUsages, TextureView,
 };
 use bevy::render::renderer::RenderDevice;
 use std::num::NonZero;
@@ -69,21 +68,9 @@ pub(super) fn init_bake_pipeline(mut commands: Commands, shaders: Res<RayMarchSh
 
 /// A baked-colour texture of `size` texels (the pool's).
 pub(super) fn bake_texture(device: &RenderDevice, size: [usize; 3]) -> TextureView {
+    let usage = TextureUsages::STORAGE_BINDING | TextureUsages::TEXTURE_BINDING;
     device
-        .create_texture(&TextureDescriptor {
-            label: Some("isrf_baked_colours"),
-            size: Extent3d {
-                width: size[0] as u32,
-                height: size[1] as u32,
-                depth_or_array_layers: size[2] as u32,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: TextureDimension::D3,
-            format: FORMAT,
-            usage: TextureUsages::STORAGE_BINDING | TextureUsages::TEXTURE_BINDING,
-            view_formats: &[],
-        })
+        .create_texture(&super::texture_3d_desc("isrf_baked_colours", FORMAT, size, usage))
         .create_view(&default())
 }
 

@@ -498,16 +498,14 @@ struct AtlasTextures {
     no_bake: TextureView,
 }
 
-/// A 3D texture of `size` holding `data` (texels x fastest).
-fn texture_3d_with(
-    device: &RenderDevice,
-    queue: &RenderQueue,
+/// A single-level 3D texture of `size` texels.
+fn texture_3d_desc(
     label: &'static str,
     format: TextureFormat,
     size: [usize; 3],
-    data: &[u8],
-) -> TextureView {
-    let desc = TextureDescriptor {
+    usage: TextureUsages,
+) -> TextureDescriptor<'static> {
+    TextureDescriptor {
         label: Some(label),
         size: Extent3d {
             width: size[0] as u32,
@@ -518,9 +516,26 @@ fn texture_3d_with(
         sample_count: 1,
         dimension: TextureDimension::D3,
         format,
-        usage: TextureUsages::TEXTURE_BINDING | TextureUsages::COPY_DST,
+        usage,
         view_formats: &[],
-    };
+    }
+}
+
+/// A 3D texture of `size` holding `data` (texels x fastest).
+fn texture_3d_with(
+    device: &RenderDevice,
+    queue: &RenderQueue,
+    label: &'static str,
+    format: TextureFormat,
+    size: [usize; 3],
+    data: &[u8],
+) -> TextureView {
+    let desc = texture_3d_desc(
+        label,
+        format,
+        size,
+        TextureUsages::TEXTURE_BINDING | TextureUsages::COPY_DST,
+    );
     let texture = device.create_texture(&desc);
     let row = size[0] as u32 * format.block_copy_size(None).unwrap_or(1);
     queue.write_texture(
