@@ -100,8 +100,8 @@ pub(super) fn ready(cache: &PipelineCache, pipeline: &BakePipeline, status: &sup
     false
 }
 
-/// The bake for a camera at `origin` (world) into `target`, or `None` when
-/// no layer is baked.
+/// The bake for a camera at `origin` (world) into `target` (for scenes with
+/// baked layers, `MarchKey::baked`).
 pub(super) fn job(
     device: &RenderDevice,
     cache: &PipelineCache,
@@ -111,10 +111,7 @@ pub(super) fn job(
     atlas: &AtlasTextures,
     target: &TextureView,
     origin: Vec3,
-) -> Option<BakeJob> {
-    if !layers.iter().any(|l| l.info[3] & pack::LAYER_BAKED != 0) {
-        return None;
-    }
+) -> BakeJob {
     let origin = glam::Vec3::from_array(origin.to_array());
     let params = pack::bake_params(layers, atlas.bricks, atlas.slots, origin);
     let uniform = device.create_buffer_with_data(&BufferInitDescriptor {
@@ -140,8 +137,8 @@ pub(super) fn job(
             target,
         )),
     );
-    Some(BakeJob {
+    BakeJob {
         bind_group,
         groups: pack::bake_dispatch(atlas.slots),
-    })
+    }
 }

@@ -375,17 +375,19 @@ pub(super) fn prepare_views(
                     continue;
                 };
                 let origin = Vec3::from_slice(&gv.c2w[3][..3]);
-                bake_job = bake::job(
-                    &device,
-                    &pipeline_cache,
-                    &bake_pipeline,
-                    &cache.layers,
-                    fields,
-                    atlas,
-                    target,
-                    origin,
-                )
-                .map(|j| (j, bake_pipeline.id));
+                bake_job = bakes.then(|| {
+                    let job = bake::job(
+                        &device,
+                        &pipeline_cache,
+                        &bake_pipeline,
+                        &cache.layers,
+                        fields,
+                        atlas,
+                        target,
+                        origin,
+                    );
+                    (job, bake_pipeline.id)
+                });
                 march = Some((bg, march_id, key));
             }
         }
