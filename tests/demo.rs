@@ -357,7 +357,10 @@ fn field_and_labels_round_trip() {
     let fp = dir.path().join("field.safetensors");
     s.field.save(&fp).unwrap();
     let back = Field::load(&fp).unwrap();
-    assert!(field_bytes(&back) == field_bytes(&s.field));
+    // Features are stored in 8 bits, so compare at the file's precision:
+    // what was read encodes to the same bytes as what was written.
+    assert!(isrf::field::io::to_bytes(&back).unwrap() == isrf::field::io::to_bytes(&s.field).unwrap());
+    assert_eq!(back.density.raw, s.field.density.raw);
     assert_eq!(back.geom(), s.field.geom());
     let p = s.objects[1].stroke[0];
     assert_eq!(back.sampler().color(p, Vec3::Z), s.field.sampler().color(p, Vec3::Z));

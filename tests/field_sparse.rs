@@ -5,6 +5,7 @@
 
 use glam::Vec3;
 use isrf::camera::Ray;
+use isrf::field::io::Storage::F16;
 use isrf::field::{io, Aabb, Appearance, Features, Field, GridGeom, Layout};
 use isrf::render::{render_rays, RenderOptions, Scene};
 use isrf::train::model::Model;
@@ -80,8 +81,10 @@ fn sparse_file_renders_and_segments_like_the_dense_export() {
         dir.path().join("dense.safetensors"),
         dir.path().join("sparse.safetensors"),
     );
-    m.to_field().save(&dense_path).unwrap();
-    m.to_sparse_field().save(&sparse_path).unwrap();
+    // f16 features here, so that only the layout differs (8-bit features
+    // have their own test below).
+    io::save_with(&m.to_field(), &dense_path, F16).unwrap();
+    io::save_with(&m.to_sparse_field(), &sparse_path, F16).unwrap();
     let dense = Field::load(&dense_path).unwrap();
     let sparse = Field::load(&sparse_path).unwrap();
     // Stored sparse: SH and features over their own indices.
@@ -117,9 +120,53 @@ fn sparse_file_renders_and_segments_like_the_dense_export() {
 
     // Saving the loaded sparse field again gives the same bytes.
     let again = dir.path().join("again.safetensors");
-    sparse.save(&again).unwrap();
+    io::save_with(&sparse, &again, F16).unwrap();
     assert_eq!(std::fs::read(&again).unwrap(), std::fs::read(&sparse_path).unwrap());
-    assert_eq!(io::to_bytes(&sparse).unwrap(), std::fs::read(&sparse_path).unwrap());
+}
+
+#[test]
+fn feature_grids_are_stored_in_8_bits_within_half_a_step() {
+    let m = blob_model(11);
+    let dir = tempfile::tempdir().unwrap();
+    let (q8_path, f16_path) = (dir.path().join("q8.safetensors"), dir.path().join("f16.safetensors"));
+    let field = m.to_sparse_field();
+    field.save(&q8_path).unwrap();
+    io::save_with(&field, &f16_path, F16).unwrap();
+    let (meta, _) = io::read_metadata(&q8_path).unwrap();
+    assert_eq!(meta["version"], "3", "8-bit grids need a version-3 reader");
+    assert!(meta["header"].contains("\"storage\":\"q8\""), "{}", meta["header"]);
+    // One byte per value instead of two: the file shrinks by about half the
+    // feature bytes.
+    let Some(Features::Grid(orig)) = &field.features else {
+        panic!("features")
+    };
+    let saved = file_len(&f16_path) - file_len(&q8_path);
+    // (less the scales and their header entries)
+    let n = orig.data.len() as u64;
+    assert!(saved <= n && saved + 256 >= n, "saved {saved} of {n} bytes");
+
+    // Every value within half a quantisation step of its channel (plus f16
+    // rounding); the step is max |channel| / 127.
+    let loaded = Field::load(&q8_path).unwrap();
+    let Some(Features::Grid(back)) = &loaded.features else {
+        panic!("features")
+    };
+    assert_eq!(back.data.len(), orig.data.len());
+    let c = orig.channels;
+    for ch in 0..c {
+        let column = |g: &[half::f16]| g.iter().skip(ch).step_by(c).map(|v| v.to_f32()).collect::<Vec<_>>();
+        let (a, b) = (column(&orig.data), column(&back.data));
+        let step = a.iter().fold(0f32, |m, v| m.max(v.abs())) / 127.0;
+        let err = max_diff(&a, &b);
+        assert!(err <= 0.5 * step + 1e-3, "channel {ch}: error {err}, step {step}");
+        assert!(err > 0.0, "channel {ch}: 8 bits should not be exact for random values");
+    }
+    // Everything else is stored as before, and re-saving is stable.
+    assert_eq!(loaded.density.raw, field.density.raw);
+    let again = dir.path().join("again.safetensors");
+    loaded.save(&again).unwrap();
+    assert_eq!(std::fs::read(&again).unwrap(), std::fs::read(&q8_path).unwrap());
+    assert_eq!(io::to_bytes(&loaded).unwrap(), std::fs::read(&q8_path).unwrap());
 }
 
 #[test]
@@ -165,8 +212,8 @@ fn info_reports_stored_and_dense_equivalent_bytes() {
     let m = blob_model(5);
     let dir = tempfile::tempdir().unwrap();
     let (dense_path, sparse_path) = (dir.path().join("d.safetensors"), dir.path().join("s.safetensors"));
-    m.to_field().save(&dense_path).unwrap();
-    m.to_sparse_field().save(&sparse_path).unwrap();
+    io::save_with(&m.to_field(), &dense_path, F16).unwrap();
+    io::save_with(&m.to_sparse_field(), &sparse_path, F16).unwrap();
     let d = info(&dense_path);
     let s = info(&sparse_path);
     let header = |p: &Path| {
@@ -195,7 +242,7 @@ fn dense_files_are_still_version_1_and_load() {
     let m = blob_model(7);
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("d.safetensors");
-    m.to_field().save(&path).unwrap();
+    io::save_with(&m.to_field(), &path, F16).unwrap();
     let (meta, _) = io::read_metadata(&path).unwrap();
     assert_eq!(meta["version"], "1");
     assert!(!meta["header"].contains("feature_occupied"));
@@ -264,14 +311,24 @@ fn broken_sparse_files_are_refused_with_a_message() {
                 v.as_object_mut().unwrap().remove("feat.occupancy");
             }),
         ),
+        (
+            "feat.grid.scale",
+            Box::new(|v| {
+                v.as_object_mut().unwrap().remove("feat.grid.scale");
+            }),
+        ),
+        (
+            "storage",
+            Box::new(|v| edit_header(v, |h| h["features"]["storage"] = "f16".into())),
+        ),
     ];
     for (what, edit) in cases {
         tamper(&good, &bad, edit);
         let e = Field::load(&bad).expect_err(what).to_string();
         assert!(e.contains("bad.safetensors"), "{what}: {e}");
     }
-    // A version-2 file names its version to older readers: here, a newer one.
-    tamper(&good, &bad, |v| v["__metadata__"]["version"] = "3".into());
+    // A file names its version to older readers: here, a newer one.
+    tamper(&good, &bad, |v| v["__metadata__"]["version"] = "4".into());
     let e = Field::load(&bad).unwrap_err().to_string();
     assert!(e.contains("newer"), "{e}");
 }

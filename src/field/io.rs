@@ -10,7 +10,8 @@
 //! | `app.rgb` / `app.sh` | F16 | dense `[nz, ny, nx, C]` or sparse `[occupied, C]` |
 //! | `app.vm.plane{m}`, `app.vm.line{m}`, `app.vm.basis` | F32 | `[R, nb, na]`, `[R, nc]`, `[ΣR, D]` |
 //! | `app.mlp.{i}.weight`, `app.mlp.{i}.bias` | F32 | `[out, in]`, `[out]` |
-//! | `feat.grid` | F16 | like `app.rgb` |
+//! | `feat.grid` | F16, or I8 with `storage: q8` | like `app.rgb` |
+//! | `feat.grid.scale` | F32 | `[C]`: value = stored integer × scale (q8 only) |
 //! | `feat.occupancy` | U8 | packed bits at the feature resolution; only for a sparse feature grid with its own index |
 //! | `feat.vm.*` | F32 | like `app.vm.*` |
 //!
@@ -20,7 +21,12 @@
 //! and the `feat.occupancy` tensor; without them a sparse feature grid uses
 //! `occupancy`, at the density resolution). A file that uses neither is
 //! written as version 1, so older readers keep reading it; version 1 files
-//! (all dense) read as before.
+//! (all dense) read as before. Version 3 added 8-bit channel grids (channel
+//! header `storage: q8`: signed bytes with one f32 scale per channel), used
+//! for feature grids: 64 distilled channels are half of a trained field's
+//! file in f16, and segmentation compares them by distance, where the
+//! quantisation error (≤ max|channel| / 254 per channel) is far below the
+//! differences it decides on.
 //!
 //! Reading validates the header, every resolution and the exact byte size the
 //! header implies *before* reading the tensor data, then checks every tensor's
@@ -45,7 +51,7 @@ use std::sync::Arc;
 
 pub const FORMAT: &str = "isrf-field";
 /// Newest version this build reads and writes (see the module docs).
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(rename_all = "lowercase")]
@@ -59,6 +65,32 @@ pub struct ChannelHeader {
     pub layout: LayoutKind,
     pub resolution: [usize; 3],
     pub channels: usize,
+    /// How values are encoded; absent: f16 (versions 1 and 2).
+    #[serde(default, skip_serializing_if = "Storage::is_f16")]
+    pub storage: Storage,
+}
+
+/// Value encoding of a channel grid in the file.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Storage {
+    #[default]
+    F16,
+    /// Signed bytes, value = q × scale[channel], scale = max |value| / 127.
+    Q8,
+}
+
+impl Storage {
+    fn is_f16(&self) -> bool {
+        *self == Storage::F16
+    }
+    /// File bytes per stored value.
+    fn value_bytes(self) -> usize {
+        match self {
+            Storage::F16 => 2,
+            Storage::Q8 => 1,
+        }
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -119,13 +151,27 @@ pub struct Header {
 }
 
 impl Header {
+    /// The header of every channel grid (appearance and features).
+    fn channel_headers(&self) -> impl Iterator<Item = &ChannelHeader> {
+        let app = match &self.appearance {
+            AppearanceHeader::Rgb(c) | AppearanceHeader::Sh2(c) => Some(c),
+            AppearanceHeader::Vm { .. } => None,
+        };
+        let feat = match &self.features {
+            Some(FeaturesHeader::Grid(c)) => Some(c),
+            _ => None,
+        };
+        app.into_iter().chain(feat)
+    }
     /// True when the density grid is stored for the occupied points only.
     pub fn sparse_density(&self) -> bool {
         self.density.as_ref().is_some_and(|d| d.layout == LayoutKind::Sparse)
     }
     /// Oldest format version that can read a file with this header.
     pub fn min_version(&self) -> u32 {
-        if self.sparse_density() || self.feature_occupied.is_some() {
+        if self.channel_headers().any(|c| c.storage != Storage::F16) {
+            3
+        } else if self.sparse_density() || self.feature_occupied.is_some() {
             2
         } else {
             1
@@ -151,17 +197,30 @@ impl<'a> Out<'a> {
         let bytes = bits.to_bytes();
         self.push(name, Dtype::U8, vec![bytes.len()], Cow::Owned(bytes));
     }
-    fn channel_grid(&mut self, name: &str, g: &'a ChannelGrid) -> ChannelHeader {
+    fn channel_grid(&mut self, name: &str, g: &'a ChannelGrid, storage: Storage) -> ChannelHeader {
         let [nx, ny, nz] = g.geom.res;
         let (layout, shape) = match g.layout {
             Layout::Dense => (LayoutKind::Dense, vec![nz, ny, nx, g.channels]),
             Layout::Sparse(_) => (LayoutKind::Sparse, vec![g.slots(), g.channels]),
         };
-        self.push(name, Dtype::F16, shape, Cow::Borrowed(bytemuck::cast_slice(&g.data)));
+        match storage {
+            Storage::F16 => self.push(name, Dtype::F16, shape, Cow::Borrowed(bytemuck::cast_slice(&g.data))),
+            Storage::Q8 => {
+                let (q, scale) = quantise_q8(&g.data, g.channels);
+                self.push(name, Dtype::I8, shape, Cow::Owned(bytemuck::cast_vec(q)));
+                self.push(
+                    format!("{name}.scale"),
+                    Dtype::F32,
+                    vec![g.channels],
+                    Cow::Owned(bytemuck::cast_slice(&scale).to_vec()),
+                );
+            }
+        }
         ChannelHeader {
             layout,
             resolution: g.geom.res,
             channels: g.channels,
+            storage,
         }
     }
     fn vm(&mut self, prefix: &str, v: &'a VmGrid) -> VmHeader {
@@ -197,6 +256,55 @@ impl<'a> Out<'a> {
 
 fn f32_bytes(v: &[f32]) -> Cow<'_, [u8]> {
     Cow::Borrowed(bytemuck::cast_slice(v))
+}
+
+/// 8-bit encoding of `channels`-wide rows: per channel, scale = max |v| / 127
+/// and q = round(v / scale) (a channel that is zero everywhere gets scale 0).
+fn quantise_q8(data: &[f16], channels: usize) -> (Vec<i8>, Vec<f32>) {
+    let max_abs = data
+        .par_chunks(channels * 4096)
+        .map(|block| {
+            let mut m = vec![0f32; channels];
+            for row in block.chunks_exact(channels) {
+                for (m, v) in m.iter_mut().zip(row) {
+                    *m = m.max(v.to_f32().abs());
+                }
+            }
+            m
+        })
+        .reduce(
+            || vec![0f32; channels],
+            |a, b| a.iter().zip(&b).map(|(a, b)| a.max(*b)).collect(),
+        );
+    let scale: Vec<f32> = max_abs.iter().map(|m| m / 127.0).collect();
+    let inv: Vec<f32> = scale.iter().map(|&s| if s > 0.0 { 1.0 / s } else { 0.0 }).collect();
+    let mut q = vec![0i8; data.len()];
+    q.par_chunks_mut(channels * 4096)
+        .zip(data.par_chunks(channels * 4096))
+        .for_each(|(q, d)| {
+            for (q, d) in q.chunks_exact_mut(channels).zip(d.chunks_exact(channels)) {
+                for ((q, v), inv) in q.iter_mut().zip(d).zip(&inv) {
+                    *q = (v.to_f32() * inv).round().clamp(-127.0, 127.0) as i8;
+                }
+            }
+        });
+    (q, scale)
+}
+
+/// Inverse of [`quantise_q8`], to the f16 values the grid holds in memory.
+fn dequantise_q8(q: &[u8], scale: &[f32]) -> Vec<f16> {
+    let c = scale.len();
+    let mut out = vec![f16::ZERO; q.len()];
+    out.par_chunks_mut(c * 4096)
+        .zip(q.par_chunks(c * 4096))
+        .for_each(|(o, q)| {
+            for (o, q) in o.chunks_exact_mut(c).zip(q.chunks_exact(c)) {
+                for ((o, &q), s) in o.iter_mut().zip(q).zip(scale) {
+                    *o = f16::from_f32(q as i8 as f32 * s);
+                }
+            }
+        });
+    out
 }
 
 /// True when `ix` is the field's occupancy index (the same object, or the
@@ -242,7 +350,7 @@ fn density_tensor<'a>(out: &mut Out<'a>, field: &'a Field) -> Option<DensityHead
 }
 
 /// The field's tensors and header.
-fn plan(field: &Field) -> Result<(Out<'_>, Header)> {
+fn plan(field: &Field, feature_storage: Storage) -> Result<(Out<'_>, Header)> {
     let mut out = Out {
         names: vec![],
         tensors: vec![],
@@ -272,11 +380,11 @@ fn plan(field: &Field) -> Result<(Out<'_>, Header)> {
     let appearance = match &field.appearance {
         Appearance::Rgb(g) => {
             check_shared(g, "appearance")?;
-            AppearanceHeader::Rgb(out.channel_grid("app.rgb", g))
+            AppearanceHeader::Rgb(out.channel_grid("app.rgb", g, Storage::F16))
         }
         Appearance::Sh2(g) => {
             check_shared(g, "appearance")?;
-            AppearanceHeader::Sh2(out.channel_grid("app.sh", g))
+            AppearanceHeader::Sh2(out.channel_grid("app.sh", g, Storage::F16))
         }
         Appearance::Vm { grid, mlp } => {
             let grid = out.vm("app.vm", grid);
@@ -315,7 +423,7 @@ fn plan(field: &Field) -> Result<(Out<'_>, Header)> {
                     feature_occupied = Some(ix.count());
                 }
             }
-            Some(FeaturesHeader::Grid(out.channel_grid("feat.grid", g)))
+            Some(FeaturesHeader::Grid(out.channel_grid("feat.grid", g, feature_storage)))
         }
         Some(Features::Vm(v)) => Some(FeaturesHeader::Vm(out.vm("feat.vm", v))),
         None => None,
@@ -347,7 +455,7 @@ fn field_metadata(header: &Header) -> HashMap<String, String> {
 
 /// Serialises a field to safetensors bytes (in memory; [`save`] streams).
 pub fn to_bytes(field: &Field) -> Result<Vec<u8>> {
-    let (out, header) = plan(field)?;
+    let (out, header) = plan(field, Storage::Q8)?;
     let v = views(&out.names, out.tensors.iter().map(|(d, s, b)| (*d, s, &b[..])))?;
     let bytes = safetensors::serialize(v, Some(field_metadata(&header)))
         .map_err(|e| Error::invalid(format!("cannot serialise: {e}")))?;
@@ -453,7 +561,13 @@ fn canonical_header(bytes: Vec<u8>) -> Vec<u8> {
 
 /// Writes a field atomically (streamed: no in-memory copy of the file).
 pub fn save(field: &Field, path: &Path) -> Result<()> {
-    let (out, header) = plan(field)?;
+    save_with(field, path, Storage::Q8)
+}
+
+/// [`save`] with a chosen encoding for the feature grid (`Storage::F16`
+/// writes what versions 1 and 2 read).
+pub fn save_with(field: &Field, path: &Path, features: Storage) -> Result<()> {
+    let (out, header) = plan(field, features)?;
     let tensors: Vec<(Dtype, Vec<usize>, &[u8])> =
         out.tensors.iter().map(|(d, s, b)| (*d, s.clone(), &b[..])).collect();
     write_tensors(path, &out.names, &tensors, field_metadata(&header))
@@ -598,6 +712,23 @@ impl<'a> Tensors<'a> {
     pub fn u8(&self, name: &str, shape: &[usize]) -> Result<Vec<u8>> {
         Ok(self.view(name, Dtype::U8, shape)?.data().to_vec())
     }
+    /// A channel grid's values as f16, whatever their storage in the file.
+    fn channels(&self, name: &str, shape: &[usize], storage: Storage) -> Result<Vec<f16>> {
+        match storage {
+            Storage::F16 => self.f16(name, shape),
+            Storage::Q8 => {
+                let channels = shape[shape.len() - 1];
+                let scale = self.f32(&format!("{name}.scale"), &[channels])?;
+                if let Some(c) = scale.iter().position(|&s| s < 0.0) {
+                    return Err(Error::bad_file(
+                        self.path,
+                        format!("tensor '{name}.scale' is negative for channel {c}"),
+                    ));
+                }
+                Ok(dequantise_q8(self.view(name, Dtype::I8, shape)?.data(), &scale))
+            }
+        }
+    }
     fn finite(&self, name: &str, mut v: impl Iterator<Item = f32>) -> Result<()> {
         if let Some(pos) = v.position(|x| !x.is_finite()) {
             return Err(Error::bad_file(
@@ -688,6 +819,13 @@ fn validate_header(h: &Header) -> Result<()> {
                 !mlp.layers.is_empty() && mlp.layers.len() <= 16,
                 "appearance MLP must have 1..16 layers"
             );
+            // Ranges first: the input count below multiplies header values.
+            crate::ensure!(
+                mlp.feat_pe <= 16 && mlp.view_pe <= 16,
+                "positional encoding frequencies out of range (feat_pe {}, view_pe {}; at most 16)",
+                mlp.feat_pe,
+                mlp.view_pe
+            );
             let inputs = grid.out + 3 + 2 * grid.out * mlp.feat_pe + 6 * mlp.view_pe;
             crate::ensure!(
                 mlp.layers[0][0] == inputs,
@@ -705,14 +843,14 @@ fn validate_header(h: &Header) -> Result<()> {
                 mlp.layers.last().unwrap()[1] == 3,
                 "appearance MLP must output 3 values"
             );
-            crate::ensure!(
-                mlp.layers.iter().all(|l| l[0] * l[1] <= 1 << 24),
-                "appearance MLP layer is absurdly large"
-            );
-            crate::ensure!(
-                mlp.feat_pe <= 16 && mlp.view_pe <= 16,
-                "positional encoding frequencies out of range"
-            );
+            for (i, l) in mlp.layers.iter().enumerate() {
+                crate::ensure!(
+                    l[0].checked_mul(l[1]).is_some_and(|n| (1..=1 << 24).contains(&n)),
+                    "appearance MLP layer {i} ({}×{}) is empty or absurdly large",
+                    l[0],
+                    l[1]
+                );
+            }
         }
     }
     match &h.features {
@@ -752,7 +890,7 @@ fn channel_bytes(c: &ChannelHeader, occupied: usize) -> u64 {
         LayoutKind::Dense => c.resolution.iter().product::<usize>(),
         LayoutKind::Sparse => occupied,
     };
-    (slots * c.channels * 2) as u64
+    (slots * c.channels * c.storage.value_bytes()) as u64
 }
 
 fn vm_bytes(v: &VmHeader) -> u64 {
@@ -771,7 +909,7 @@ fn expected_data_bytes(h: &Header) -> u64 {
 
 /// Bytes of the tensors a header describes (occupancy bits left out), or
 /// with `dense` what they would take with every grid stored dense (density
-/// in f32, channel grids in f16): the dense-equivalent size.
+/// in f32, channel grids in their own encoding): the dense-equivalent size.
 pub fn tensor_bytes(h: &Header, dense: bool) -> u64 {
     let points = h.resolution.iter().product::<usize>();
     let occ = if dense { points } else { h.occupied.unwrap_or(0) };
@@ -807,12 +945,17 @@ fn read_channel_grid(
     let geom = GridGeom::new(bounds, c.resolution);
     let [nx, ny, nz] = c.resolution;
     Ok(match c.layout {
-        LayoutKind::Dense => ChannelGrid::dense(geom, c.channels, t.f16(name, &[nz, ny, nx, c.channels])?),
+        LayoutKind::Dense => ChannelGrid::dense(
+            geom,
+            c.channels,
+            t.channels(name, &[nz, ny, nx, c.channels], c.storage)?,
+        ),
         LayoutKind::Sparse => {
             let ix = occ
                 .clone()
                 .ok_or_else(|| Error::bad_file(t.path, format!("'{name}' is sparse but there is no occupancy")))?;
-            ChannelGrid::sparse(geom, c.channels, ix.clone(), t.f16(name, &[ix.count(), c.channels])?)
+            let data = t.channels(name, &[ix.count(), c.channels], c.storage)?;
+            ChannelGrid::sparse(geom, c.channels, ix.clone(), data)
         }
     })
 }
