@@ -16,6 +16,8 @@ pub mod edit;
 pub mod error;
 pub mod eval;
 pub mod field;
+pub mod fuzz;
+pub mod npy;
 pub mod render;
 pub mod segment;
 pub mod train;

@@ -37,6 +37,8 @@ enum Command {
     Bench(cli::bench::Args),
     /// The interactive editor (bevy; needs the `editor` cargo feature).
     Edit(cli::edit::Args),
+    /// Mutation-fuzz one of the file readers (`--list` names them); ends with `inputs: n, errors: n, panics: n`.
+    Fuzz(cli::fuzz::Args),
 }
 
 /// `isrf info F | head` must end quietly when its reader goes away, as Unix
@@ -67,6 +69,7 @@ fn main() {
         Command::Run(a) => cli::run::run(a),
         Command::Bench(a) => cli::bench::run(a),
         Command::Edit(a) => cli::edit::run(a),
+        Command::Fuzz(a) => cli::fuzz::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -86,34 +86,15 @@ pub struct LlffScene {
 pub fn read_poses_bounds(path: &Path) -> Result<Vec<LlffPose>> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     let bad = |why: String| Error::bad_file(path, why);
-    let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| bad(format!("not a .npy file: {e}")))?;
-    let shape = npy.shape().to_vec();
-    if shape.len() != 2 || shape[1] != 17 || shape[0] == 0 {
-        return Err(bad(format!("expected an N×17 array (N ≥ 1), got shape {shape:?}")));
-    }
-    if npy.order() != npyz::Order::C {
-        return Err(bad("Fortran-ordered arrays are not supported".into()));
-    }
-    let values: Vec<f64> = match npy.try_data::<f64>() {
-        Ok(data) => data.collect::<std::io::Result<Vec<f64>>>(),
-        Err(npy) => match npy.try_data::<f32>() {
-            Ok(data) => data.map(|v| v.map(f64::from)).collect(),
-            Err(npy) => {
-                return Err(bad(format!(
-                    "expected float64 or float32 data, got {}",
-                    npy.dtype().descr()
-                )))
-            }
-        },
-    }
-    .map_err(|e| bad(format!("truncated or unreadable data: {e}")))?;
-    if values.len() != shape[0] as usize * 17 {
+    let npy = crate::npy::parse(&bytes).map_err(bad)?;
+    if npy.shape.len() != 2 || npy.shape[1] != 17 || npy.shape[0] == 0 {
         return Err(bad(format!(
-            "expected {} values, found {}",
-            shape[0] * 17,
-            values.len()
+            "expected an N×17 array (N ≥ 1), got shape {:?}",
+            npy.shape
         )));
     }
+    // The parser checked the shape against the bytes present: 17·N values.
+    let values = npy.to_f64();
     values
         .chunks_exact(17)
         .enumerate()
@@ -198,9 +179,13 @@ pub fn load(dir: &Path, factor: u32) -> Result<CameraSet> {
 /// `images_N` when that folder exists (it must agree within a pixel).
 pub fn load_scene(dir: &Path, opts: &LlffOptions) -> Result<LlffScene> {
     crate::ensure!(opts.factor >= 1, "LLFF downscale factor must be ≥ 1");
-    let poses = read_poses_bounds(&dir.join("poses_bounds.npy"))?;
+    let poses_path = dir.join("poses_bounds.npy");
+    let poses = read_poses_bounds(&poses_path)?;
     let factor = opts.factor as f64;
-    let [h_full, w_full, f_full] = poses[0].hwf();
+    let [h_full, w_full, f_full] = poses
+        .first()
+        .ok_or_else(|| Error::bad_file(&poses_path, "holds no poses"))?
+        .hwf();
     let folder = image_dir(dir, opts.factor);
     let images = if folder.is_dir() {
         list_images(&folder)?
@@ -211,11 +196,15 @@ pub fn load_scene(dir: &Path, opts: &LlffOptions) -> Result<LlffScene> {
         Some(first) => checked_size(first, w_full / factor, h_full / factor)?,
         None => ((w_full / factor).round() as u32, (h_full / factor).round() as u32),
     };
-    crate::ensure!(
-        width >= 1 && height >= 1,
-        "LLFF factor {} leaves no pixels",
-        opts.factor
-    );
+    if width < 1 || height < 1 {
+        return Err(Error::bad_file(
+            &poses_path,
+            format!(
+                "downscale factor {} leaves no pixels of the {w_full}×{h_full} images",
+                opts.factor
+            ),
+        ));
+    }
     let focal = (f_full / factor) as f32;
     let intrinsics = Intrinsics {
         width,

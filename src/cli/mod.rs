@@ -5,6 +5,7 @@ pub mod bench;
 pub mod demo;
 pub mod edit;
 pub mod eval;
+pub mod fuzz;
 pub mod info;
 pub mod render;
 pub mod run;

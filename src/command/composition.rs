@@ -266,13 +266,18 @@ pub fn load(path: &Path, out_dir: &Path) -> Result<Session> {
         let r = *res
             .get(&key)
             .ok_or_else(|| ctx(Error::invalid("its bitmap is missing")))?;
-        crate::ensure!(
-            r == field.field.res(),
-            "object '{}': bitmap resolution {r:?} differs from field '{}' {:?}",
-            o.name,
-            o.field,
-            field.field.res()
-        );
+        if r != field.field.res() {
+            return Err(Error::bad_file(
+                &bitmaps_path,
+                format!(
+                    "object '{}' (of {}): bitmap resolution {r:?} differs from field '{}' {:?}",
+                    o.name,
+                    path.display(),
+                    o.field,
+                    field.field.res()
+                ),
+            ));
+        }
         let n = r.iter().product::<usize>().div_ceil(64) * 8;
         let mask = Bitmap::from_bytes(r, &t.u8(&key, &[n])?).map_err(ctx)?;
         if let Some(e) = &o.color_edit {

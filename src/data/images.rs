@@ -21,13 +21,55 @@ pub struct Image {
     pub alpha: Option<Vec<f32>>,
 }
 
+/// The most pixels an image file may have: 8192² (as RGBA f32, 1 GiB).
+/// Captures are far smaller (LLFF full resolution is 4032×3024).
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
+
+/// Decodes a PNG or JPEG after reading its size from the header: the size
+/// must be `expected` (width, height) when given and at most
+/// [`MAX_IMAGE_PIXELS`], so a small file that claims a huge image costs
+/// nothing. The decoder's own allocations are capped as well.
+pub fn open_image(path: &Path, expected: Option<(u32, u32)>) -> Result<image::DynamicImage> {
+    let err = |e: image::ImageError| match e {
+        image::ImageError::IoError(io) => Error::io(path, io),
+        other => Error::bad_file(path, format!("cannot decode image: {other}")),
+    };
+    let mut reader = image::ImageReader::open(path)
+        .and_then(|r| r.with_guessed_format())
+        .map_err(|e| Error::io(path, e))?;
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(1 << 30);
+    reader.limits(limits);
+    let decoder = reader.into_decoder().map_err(err)?;
+    let (w, h) = image::ImageDecoder::dimensions(&decoder);
+    if let Some((ew, eh)) = expected.filter(|&e| e != (w, h)) {
+        return Err(Error::bad_file(
+            path,
+            format!("image is {w}×{h} but its camera is {ew}×{eh}"),
+        ));
+    }
+    if u64::from(w) * u64::from(h) > MAX_IMAGE_PIXELS {
+        return Err(Error::bad_file(
+            path,
+            format!("image is {w}×{h}, more than the {MAX_IMAGE_PIXELS} pixels allowed"),
+        ));
+    }
+    image::DynamicImage::from_decoder(decoder).map_err(err)
+}
+
 impl Image {
     /// Reads a PNG or JPEG file. RGB is left as stored (not composited).
     pub fn load(path: &Path) -> Result<Image> {
-        let img = image::open(path).map_err(|e| match e {
-            image::ImageError::IoError(io) => Error::io(path, io),
-            other => Error::bad_file(path, format!("cannot decode image: {other}")),
-        })?;
+        Self::from_dynamic(open_image(path, None)?)
+    }
+
+    /// Like [`Image::load`] for an image that must be `width`×`height` (its
+    /// camera's size): checked from the header before decoding.
+    pub fn load_sized(path: &Path, width: u32, height: u32) -> Result<Image> {
+        Self::from_dynamic(open_image(path, Some((width, height)))?)
+    }
+
+    fn from_dynamic(img: image::DynamicImage) -> Result<Image> {
         let (width, height) = (img.width(), img.height());
         if !img.color().has_alpha() {
             return Ok(Image {

@@ -204,17 +204,10 @@ fn finish(kind: DatasetKind, root: &Path, views: Vec<View>, opts: &LoadOptions, 
     let images = views
         .par_iter()
         .map(|v| {
-            let mut img = Image::load(&v.path)?;
+            // The size is checked against the camera from the file's header,
+            // before anything is decoded.
             let k = &v.frame.camera.intrinsics;
-            if (img.width, img.height) != (k.width, k.height) {
-                return Err(Error::bad_file(
-                    &v.path,
-                    format!(
-                        "image is {}×{} but its camera ({}) is {}×{}",
-                        img.width, img.height, v.frame.name, k.width, k.height
-                    ),
-                ));
-            }
+            let mut img = Image::load_sized(&v.path, k.width, k.height)?;
             img.composite(opts.background);
             Ok(img.downscaled(factor))
         })

@@ -8,7 +8,7 @@
 mod images;
 mod loaders;
 
-pub use images::Image;
+pub use images::{open_image, Image, MAX_IMAGE_PIXELS};
 
 use crate::camera::CameraSet;
 use crate::error::{Error, Result};

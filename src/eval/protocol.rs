@@ -334,9 +334,7 @@ pub fn evaluate_nvos(
         }
     }
     let mask = builder.mask;
-    let gt_img = image::open(&mask_path)
-        .map_err(|e| Error::bad_file(&mask_path, e.to_string()))?
-        .to_luma8();
+    let gt_img = crate::data::open_image(&mask_path, None)?.to_luma8();
     let cam = camera_at(target_cam, gt_img.width(), gt_img.height());
     let opts = RenderOptions {
         probes: vec![Probe {

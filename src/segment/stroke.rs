@@ -301,15 +301,6 @@ impl StrokeDoc {
     }
 }
 
-/// A stroke file holds one stroke, a list, or `{ "strokes": [...] }`.
-#[derive(Deserialize)]
-#[serde(untagged)]
-enum StrokeFile {
-    One(StrokeDoc),
-    Many(Vec<StrokeDoc>),
-    Wrapped { strokes: Vec<StrokeDoc> },
-}
-
 /// Reads strokes from a JSON file; every error names the file (and stroke).
 pub fn load_strokes(path: &Path) -> Result<Vec<Stroke>> {
     load_strokes_on(path, None)
@@ -333,18 +324,33 @@ pub fn parse_strokes(text: &str) -> Result<Vec<Stroke>> {
     parse_strokes_on(text, None)
 }
 
-/// The stroke documents of a stroke file's text (at least one).
+/// The stroke documents of a stroke file's text (at least one). A file
+/// holds one stroke, a list, or `{ "strokes": [...] }`: the JSON is parsed
+/// first and its shape decides which, so an error inside a list names the
+/// stroke and the real problem (not "expected a single stroke").
 fn stroke_docs(text: &str) -> Result<Vec<StrokeDoc>> {
-    let docs = match serde_json::from_str::<StrokeFile>(text) {
-        Ok(StrokeFile::One(d)) => vec![d],
-        Ok(StrokeFile::Many(v)) | Ok(StrokeFile::Wrapped { strokes: v }) => v,
-        Err(_) => {
-            // The single-stroke form gives the most specific error message.
-            let e = serde_json::from_str::<StrokeDoc>(text)
-                .err()
-                .map(|e| e.to_string())
-                .unwrap_or_default();
-            return Err(Error::invalid(format!("not a stroke document: {e}")));
+    use serde_json::Value;
+    let value: Value = serde_json::from_str(text).map_err(|e| Error::invalid(format!("not valid JSON: {e}")))?;
+    let one = |i: Option<usize>, v: Value| {
+        StrokeDoc::deserialize(v).map_err(|e| match i {
+            Some(i) => Error::invalid(format!("stroke {i}: {e}")),
+            None => Error::invalid(format!("not a stroke document: {e}")),
+        })
+    };
+    let list = |items: Vec<Value>| -> Result<Vec<StrokeDoc>> {
+        items.into_iter().enumerate().map(|(i, v)| one(Some(i), v)).collect()
+    };
+    let docs = match value {
+        Value::Array(items) => list(items)?,
+        Value::Object(mut m) if m.contains_key("strokes") => match m.remove("strokes") {
+            Some(Value::Array(items)) => list(items)?,
+            _ => return Err(Error::invalid("'strokes' must be a list of strokes")),
+        },
+        v @ Value::Object(_) => vec![one(None, v)?],
+        _ => {
+            return Err(Error::invalid(
+                "not a stroke document: expected a stroke, a list of strokes or {\"strokes\": [...]}",
+            ))
         }
     };
     ensure!(!docs.is_empty(), "the stroke document holds no strokes");
@@ -429,18 +435,9 @@ fn frame_camera(set: &CameraSet, doc: &CameraDoc) -> Result<Camera> {
 /// A scribble PNG (NVOS style: any non-zero pixel is stroked) on `camera`.
 /// The image must have the camera's size.
 pub fn scribble_stroke(path: &Path, camera: Camera, polarity: Polarity, object: &str) -> Result<Stroke> {
-    let img = image::open(path).map_err(|e| Error::bad_file(path, format!("cannot read scribble image: {e}")))?;
-    let img = img.to_luma8();
     let k = camera.intrinsics;
-    ensure!(
-        img.width() == k.width && img.height() == k.height,
-        "scribble {} is {}x{} but the camera is {}x{}",
-        path.display(),
-        img.width(),
-        img.height(),
-        k.width,
-        k.height
-    );
+    // The size is checked from the header before decoding.
+    let img = crate::data::open_image(path, Some((k.width, k.height)))?.to_luma8();
     let points: Vec<Vec2> = img
         .enumerate_pixels()
         .filter(|(_, _, p)| p.0[0] > 0)

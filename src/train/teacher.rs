@@ -307,50 +307,21 @@ mod npy {
     use crate::error::{Error, Result};
     use std::path::Path;
 
-    /// Shape and values (as f32) of a `.npy`, or of the first array of a `.npz`.
+    /// Shape and values (as f32) of a `.npy`, or of the first array of a
+    /// `.npz`, read by the strict parser in [`crate::npy`].
     pub fn read(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
-        let bad = |e: std::io::Error| Error::bad_file(path, format!("not a readable array: {e}"));
-        let is_npz = path.extension().is_some_and(|e| e == "npz");
+        let bad = |why: String| Error::bad_file(path, why);
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-        if is_npz {
-            let mut z = npyz::npz::NpzArchive::new(std::io::Cursor::new(&bytes)).map_err(bad)?;
-            let name = z
-                .array_names()
-                .next()
-                .map(str::to_string)
-                .ok_or_else(|| Error::bad_file(path, "the archive holds no array"))?;
-            let npy = z
-                .by_name(&name)
-                .map_err(bad)?
-                .ok_or_else(|| Error::bad_file(path, "array vanished"))?;
-            values(npy, path)
-        } else {
-            values(npyz::NpyFile::new(&bytes[..]).map_err(bad)?, path)
+        let bytes = match path.extension().is_some_and(|e| e == "npz") {
+            true => crate::npy::read_npz_first(&bytes).map_err(bad)?,
+            false => bytes,
+        };
+        let npy = crate::npy::parse(&bytes).map_err(bad)?;
+        let data = npy.to_f32();
+        if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+            return Err(bad(format!("value {i} is not finite (as f32)")));
         }
-    }
-
-    fn values<R: std::io::Read>(npy: npyz::NpyFile<R>, path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
-        if npy.order() != npyz::Order::C {
-            return Err(Error::bad_file(
-                path,
-                "Fortran-ordered arrays are not supported; save with C order",
-            ));
-        }
-        let shape: Vec<usize> = npy.shape().iter().map(|&d| d as usize).collect();
-        let type_str = npy.dtype().descr();
-        let data: Vec<f32> = match type_str.trim_matches('\'').trim_start_matches(['<', '>', '|', '=']) {
-            "f4" => npy.into_vec::<f32>(),
-            "f2" => npy
-                .into_vec::<half::f16>()
-                .map(|v| v.into_iter().map(f32::from).collect()),
-            "f8" => npy.into_vec::<f64>().map(|v| v.into_iter().map(|x| x as f32).collect()),
-            other => return Err(Error::bad_file(path, format!("dtype {other} is not a float type"))),
-        }
-        .map_err(|e| Error::bad_file(path, format!("truncated or corrupt data: {e}")))?;
-        if data.len() != shape.iter().product::<usize>() || data.iter().any(|v| !v.is_finite()) {
-            return Err(Error::bad_file(path, "values do not match the shape or are not finite"));
-        }
-        Ok((shape, data))
+        Ok((npy.shape, data))
     }
 
     /// `[h, w, C]` / `[C, h, w]` (optionally with a leading 1) to
