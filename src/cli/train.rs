@@ -93,7 +93,9 @@ pub struct Args {
     /// LLFF: read images_N.
     #[arg(long, default_value_t = 8)]
     pub llff_factor: u32,
-    /// Iterations between held-out evaluations shown in the progress bar and plot.
+    /// Iterations between held-out evaluations shown in the progress bar and
+    /// plot; each also rewrites `<out>.preview.png` (render | photo of a
+    /// held-out view).
     #[arg(long, default_value_t = 500)]
     pub eval_every: usize,
     /// JSON file with training settings (any TrainConfig fields) applied
@@ -300,6 +302,16 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
     let started = Instant::now();
     let tty = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let mut eval_psnr: Option<f32> = None;
+    // A held-out view as the field forms (render | photo), replaced at
+    // every evaluation.
+    let preview = sibling(&a.out, ".preview.png");
+    if a.eval_every > 0 && !session.eval_views.is_empty() {
+        eprintln!(
+            "preview of a held-out view every {} iterations: {}",
+            a.eval_every,
+            preview.display()
+        );
+    }
     let (mut loss_avg, mut psnr_avg) = (0.0f32, 0.0f32);
     while !session.trainer.is_done() {
         let s = session.trainer.step()?;
@@ -315,9 +327,11 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
             (1.0 - k) * psnr_avg + k * s.psnr
         };
         if a.eval_every > 0 && (s.iter.is_multiple_of(a.eval_every) || s.iter == total) {
-            eval_psnr = session.quick_eval(2);
-            if let Some(p) = eval_psnr {
-                session.evals.push((s.iter, p));
+            if let Some(q) = session.quick_eval(2) {
+                eval_psnr = Some(q.psnr);
+                session.evals.push((s.iter, q.psnr));
+                let (w, h) = q.preview.dimensions();
+                isrf::render::save_png(&preview, w, h, q.preview.as_raw())?;
             }
         }
         let m = session.model();

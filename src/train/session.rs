@@ -33,6 +33,26 @@ pub fn default_teacher() -> Result<Option<TeacherSource>> {
         .transpose()
 }
 
+/// A quick look at held-out views during training.
+pub struct QuickEval {
+    /// Mean PSNR over the views looked at.
+    pub psnr: f32,
+    /// The first view: the field's render on the left, the photo on the
+    /// right (8-bit RGB, `2·width × height`).
+    pub preview: image::RgbImage,
+}
+
+/// Two equally sized colour images next to each other, as 8-bit RGB.
+fn side_by_side(left: &[Vec3], right: &[Vec3], width: u32, height: u32) -> image::RgbImage {
+    let w = width as usize;
+    let mut px = Vec::with_capacity(6 * w * height as usize);
+    for (l, r) in left.chunks(w).zip(right.chunks(w)) {
+        px.extend(crate::render::to_rgb8(l));
+        px.extend(crate::render::to_rgb8(r));
+    }
+    image::RgbImage::from_raw(2 * width, height, px).expect("two rows of width w per image row")
+}
+
 /// Default settings per capture kind (measured on lego 200×200 and fern
 /// `images_8` on two cores; see the crate's training notes).
 pub fn preset(kind: DatasetKind) -> TrainConfig {
@@ -218,8 +238,9 @@ impl Session {
     }
 
     /// Mean PSNR of up to `max_views` held-out views (spread over the list)
-    /// rendered with the training forward pass; `None` without held-out views.
-    pub fn quick_eval(&self, max_views: usize) -> Option<f32> {
+    /// rendered with the training forward pass, and a preview of the first
+    /// one; `None` without held-out views.
+    pub fn quick_eval(&self, max_views: usize) -> Option<QuickEval> {
         if self.eval_views.is_empty() || max_views == 0 {
             return None;
         }
@@ -229,18 +250,30 @@ impl Session {
             .collect();
         let mut se = 0.0f64;
         let mut count = 0usize;
+        let mut preview = None;
         for i in pick {
             let cam = &self.dataset.cameras.frames[i].camera;
             let img = &self.dataset.images[i];
             let rays = pixel_rays(cam);
             let (out, _) = self.trainer.render_rays(&rays, false);
-            for (k, o) in out.iter().enumerate() {
-                let t = Vec3::from(img.pixel(k as u32 % img.width, k as u32 / img.width));
-                se += (o.color - t).length_squared() as f64;
-            }
+            let truth: Vec<Vec3> = (0..out.len() as u32)
+                .map(|k| Vec3::from(img.pixel(k % img.width, k / img.width)))
+                .collect();
+            se += out
+                .iter()
+                .zip(&truth)
+                .map(|(o, t)| (o.color - *t).length_squared() as f64)
+                .sum::<f64>();
             count += out.len() * 3;
+            if preview.is_none() {
+                let colors: Vec<Vec3> = out.iter().map(|o| o.color).collect();
+                preview = Some(side_by_side(&colors, &truth, img.width, img.height));
+            }
         }
-        Some(psnr_of((se / count.max(1) as f64) as f32))
+        Some(QuickEval {
+            psnr: psnr_of((se / count.max(1) as f64) as f32),
+            preview: preview?,
+        })
     }
 
     /// PSNR of every held-out view rendered by the reference renderer from
