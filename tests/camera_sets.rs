@@ -598,6 +598,24 @@ fn llff_errors() {
     let err = llff::load(tmp.path(), 4).unwrap_err().to_string();
     assert!(err.contains("a.png") && err.contains("10×10"), "{err}");
     assert!(llff::load(tmp.path(), 0).is_err());
+
+    // A factor larger than the images: the error names the poses file.
+    std::fs::remove_dir_all(tmp.path().join("images_4")).unwrap();
+    let tiny = llff_row(&forward_facing_poses()[0], [3.0, 3.0, 150.0], [2.0, 9.0]);
+    write_npy(&path, &[1, 17], &tiny);
+    let err = llff::load(tmp.path(), 8).unwrap_err().to_string();
+    assert!(
+        err.contains("poses_bounds.npy") && err.contains("factor 8 leaves no pixels"),
+        "{err}"
+    );
+
+    // Shapes the strict .npy reader refuses before reading data.
+    write_npy(&path, &[0, 17], &[]);
+    let err = llff::load(tmp.path(), 8).unwrap_err().to_string();
+    assert!(err.contains("N ≥ 1"), "{err}");
+    write_npy(&path, &[1 << 59, 17], &good);
+    let err = llff::load(tmp.path(), 8).unwrap_err().to_string();
+    assert!(err.contains("more bytes than memory can hold"), "{err}");
 }
 
 // ----------------------------------------------------------- COLMAP

@@ -474,6 +474,39 @@ fn compositions_round_trip_and_report_changed_files() {
     assert!(e.contains("field 'shelf'") && e.contains("missing"), "{e}");
 }
 
+/// A bitmap whose resolution is not its field's: the error names the
+/// bitmaps file and the composition.
+#[test]
+fn composition_bitmap_resolution_error_names_the_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = isrf::demo::build("shelf", RES, 0).unwrap();
+    scene.field.save(&dir.path().join("shelf.safetensors")).unwrap();
+    let mut s = Session::new(dir.path(), dir.path());
+    s.apply(&Command::LoadField {
+        name: "shelf".into(),
+        source: FieldSource::File("shelf.safetensors".into()),
+        transform: None,
+    })
+    .unwrap();
+    s.state.objects.push(isrf::command::session::ObjectEntry {
+        name: "box".into(),
+        field: "shelf".into(),
+        mask: std::sync::Arc::new(isrf::field::Bitmap::new([4, 5, 6])),
+        transform: glam::Affine3A::IDENTITY,
+        removed: false,
+        visible: true,
+        duplicate: false,
+        color_edit: None,
+    });
+    let doc = dir.path().join("comp.json");
+    composition::save(&s, &doc).unwrap();
+    let e = composition::load(&doc, dir.path()).unwrap_err().to_string();
+    assert!(
+        e.contains("comp.bitmaps.") && e.contains("comp.json") && e.contains("bitmap resolution [4, 5, 6]"),
+        "{e}"
+    );
+}
+
 /// A frame renderer that records the session's progress at every frame.
 struct ProgressProbe {
     progress: isrf::util::Progress,

@@ -80,7 +80,7 @@ pub enum Outcome {
 /// [`prepare`]), catching panics.
 pub fn run_one(target: &Target, work: &Path, input: &[u8]) -> Outcome {
     let path = work.join(target.file);
-    if let Err(e) = std::fs::write(&path, input) {
+    if let Err(e) = write_input(&path, input) {
         return Outcome::Err(Error::io(&path, e));
     }
     install_panic_hook();
@@ -94,6 +94,20 @@ pub fn run_one(target: &Target, work: &Path, input: &[u8]) -> Outcome {
         Ok(Err(e)) => Outcome::Err(e),
         Err(_) => Outcome::Panic(take_panic_message()),
     }
+}
+
+/// Overwrites the input file in place, then cuts it to length: truncating
+/// to zero first (as `fs::write` does) makes ext4 flush the old contents
+/// on every rewrite (`auto_da_alloc`), about 2 ms an input.
+fn write_input(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(path)?;
+    f.write_all(bytes)?;
+    f.set_len(bytes.len() as u64)
 }
 
 /// Makes a work folder for `target` with the files its reader needs
