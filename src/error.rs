@@ -61,7 +61,43 @@ pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
     std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
     let mut tmp = tempfile::NamedTempFile::new_in(&dir).map_err(|e| Error::io(&dir, e))?;
     tmp.write_all(bytes).map_err(|e| Error::io(path, e))?;
+    failpoint("write_atomic.before_rename");
     tmp.as_file().sync_all().map_err(|e| Error::io(path, e))?;
     tmp.persist(path).map_err(|e| Error::io(path, e.error))?;
     Ok(())
+}
+
+/// Runs `f`, turning a panic inside it into an error naming `what`, so that
+/// a bug in one command cannot take a long-running program (the editor)
+/// down with the user's session. Callers must only use state that `f`
+/// leaves consistent when it unwinds (e.g. a session that swaps in its
+/// next state only on success).
+pub fn catch_panic<T>(what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
+    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)) {
+        Ok(r) => r,
+        Err(payload) => {
+            let msg = payload
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown cause".into());
+            Err(Error::invalid(format!(
+                "{what} failed on an internal error (a bug): {msg}"
+            )))
+        }
+    }
+}
+
+/// Test hook: with `ISRF_FAILPOINT=<name>` in the environment the process
+/// kills itself (SIGKILL, no clean-up) when it reaches `failpoint(name)`.
+/// The tests use it to cut a save at an exact point between its writes.
+pub fn failpoint(name: &str) {
+    if std::env::var_os("ISRF_FAILPOINT").is_some_and(|v| v == name) {
+        #[cfg(unix)]
+        // SAFETY: kill(2) on our own PID.
+        unsafe {
+            libc::kill(libc::getpid(), libc::SIGKILL);
+        }
+        std::process::abort();
+    }
 }

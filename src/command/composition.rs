@@ -4,6 +4,11 @@
 //! the segmentation parameters; plus one `.safetensors` sidecar holding the
 //! objects' bitmaps (tensor `object.<i>`, packed bits). Both written
 //! atomically, the bitmaps first so the document never names missing data.
+//! The sidecar's name carries the CRC-32 of its bytes
+//! (`<stem>.bitmaps.<crc>.safetensors`), so a save killed between the two
+//! writes leaves the old document with its old bitmaps, never the old
+//! document with new bitmaps; the old sidecar goes once the new document
+//! is in place.
 
 use super::session::{FieldEntry, ObjectEntry, Session, State};
 use super::FieldSource;
@@ -90,8 +95,8 @@ fn relative_to(p: &Path, dir: &Path) -> PathBuf {
     abs.strip_prefix(&d).map(Path::to_path_buf).unwrap_or(abs)
 }
 
-/// Saves the session's composition to `path` (+ `<stem>.bitmaps.safetensors`).
-/// Returns the files written.
+/// Saves the session's composition to `path` (+
+/// `<stem>.bitmaps.<crc>.safetensors`). Returns the files written.
 pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
     let st = &session.state;
     let dir = path
@@ -104,7 +109,6 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "composition".into());
-    let bitmaps_name = PathBuf::from(format!("{stem}.bitmaps.safetensors"));
     let mut fields = vec![];
     for f in &st.fields {
         let (source, crc, bytes) = match &f.source {
@@ -144,8 +148,12 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
         "resolutions".to_string(),
         serde_json::to_string(&res_meta).expect("map serialises"),
     );
+    let bitmaps = serialize(&names, &tensors, meta)?;
+    let bitmaps_name = PathBuf::from(format!("{stem}.bitmaps.{:08x}.safetensors", crc32fast::hash(&bitmaps)));
     let bitmaps_path = dir.join(&bitmaps_name);
-    write_atomic(&bitmaps_path, &serialize(&names, &tensors, meta)?)?;
+    write_atomic(&bitmaps_path, &bitmaps)?;
+    crate::error::failpoint("composition.between_writes");
+    let old_bitmaps = sidecar_of(path);
     let objects = st
         .objects
         .iter()
@@ -162,7 +170,7 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
     let doc = Doc {
         format: FORMAT.into(),
         version: VERSION,
-        bitmaps: bitmaps_name,
+        bitmaps: bitmaps_name.clone(),
         background: st.background,
         params: st.params,
         fields,
@@ -174,7 +182,39 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
         _ => serde_json::to_string_pretty(&doc).map_err(|e| Error::invalid(e.to_string()))?,
     };
     write_atomic(path, text.as_bytes())?;
+    if let Some(old) = old_bitmaps.filter(|o| *o != bitmaps_name) {
+        remove_unused_sidecar(&dir, &stem, &old, path);
+    }
     Ok(vec![bitmaps_path, path.to_path_buf()])
+}
+
+/// The bitmaps file an existing composition document names, if it is one.
+fn sidecar_of(path: &Path) -> Option<PathBuf> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let doc: Doc = match path.extension().and_then(|e| e.to_str()) {
+        Some("ron") => ron::from_str(&text).ok()?,
+        _ => serde_json::from_str(&text).ok()?,
+    };
+    Some(doc.bitmaps)
+}
+
+/// Removes the sidecar `old` that the document at `path` named before it
+/// was overwritten, if it is a sidecar of this stem in this folder and no
+/// other composition of the same stem (`.ron` beside `.json`) names it.
+/// Best effort: a sidecar left behind only takes space.
+fn remove_unused_sidecar(dir: &Path, stem: &str, old: &Path, path: &Path) {
+    let name = old.to_string_lossy();
+    let ours = old.components().count() == 1
+        && name.starts_with(&format!("{stem}.bitmaps."))
+        && name.ends_with(".safetensors");
+    let named_elsewhere = ["ron", "json"]
+        .iter()
+        .map(|e| dir.join(format!("{stem}.{e}")))
+        .filter(|p| p.file_name() != path.file_name())
+        .any(|p| sidecar_of(&p).is_some_and(|b| b == old));
+    if ours && !named_elsewhere {
+        let _ = std::fs::remove_file(dir.join(old));
+    }
 }
 
 /// Opens a composition into a fresh session (paths resolve against the

@@ -9,6 +9,7 @@
 //! appends the command to the log; "save as script" writes the log.
 
 pub mod composition;
+pub mod recovery;
 pub mod script;
 pub mod session;
 
