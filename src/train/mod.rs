@@ -25,6 +25,6 @@ pub mod vm;
 pub use march::{GradBuf, MarchOpts, RayOut, Scratch};
 pub use model::{DenseGrid, Model};
 pub use rays::{default_bounds, RaySet};
-pub use session::{default_teacher, preset, EvalReport, Session, DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS};
+pub use session::{default_teacher, preset, EvalReport, Quality, Session, DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS};
 pub use teacher::{default_cache_dir, teacher_features, FeatureMap, FeatureMaps, TeacherReport, TeacherSource};
 pub use trainer::{psnr_of, step_of, StepStats, TrainConfig, Trainer};
