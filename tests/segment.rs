@@ -282,6 +282,18 @@ fn bad_strokes_are_rejected_with_a_message() {
     let typo = r#"{"camera": {"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]], "fl_x": 50, "w": 10, "h": 10}, "points": [[1,2]], "polarty": "negative"}"#;
     assert!(parse_strokes(typo).unwrap_err().to_string().contains("polarty"));
     let good = r#"{"camera": {"transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,3],[0,0,0,1]], "fl_x": 50, "w": 10, "h": 10}, "points": [[1,2]], "polarity": "negative", "object": "pot"}"#;
+    // A bad stroke inside a list (bare or wrapped) is named with its problem.
+    let bad_radius = good.replace("\"points\"", "\"radius\": -3, \"points\"");
+    for doc in [
+        format!("[{good}, {bad_radius}]"),
+        format!("{{\"strokes\": [{good}, {bad_radius}]}}"),
+    ] {
+        let e = parse_strokes(&doc).unwrap_err().to_string();
+        assert!(
+            e.contains("stroke 1") && e.contains("-3") && !e.contains("sequence"),
+            "{e}"
+        );
+    }
     let s = parse_strokes(good).unwrap();
     assert_eq!(s[0].polarity, Polarity::Negative);
     assert_eq!(s[0].object, "pot");

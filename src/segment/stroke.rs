@@ -330,7 +330,8 @@ pub fn parse_strokes(text: &str) -> Result<Vec<Stroke>> {
 /// stroke and the real problem (not "expected a single stroke").
 fn stroke_docs(text: &str) -> Result<Vec<StrokeDoc>> {
     use serde_json::Value;
-    let value: Value = serde_json::from_str(text).map_err(|e| Error::invalid(format!("not valid JSON: {e}")))?;
+    let value: Value =
+        serde_json::from_str(text).map_err(|e| Error::invalid(format!("not a stroke document: invalid JSON: {e}")))?;
     let one = |i: Option<usize>, v: Value| {
         StrokeDoc::deserialize(v).map_err(|e| match i {
             Some(i) => Error::invalid(format!("stroke {i}: {e}")),
