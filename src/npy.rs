@@ -373,9 +373,11 @@ pub fn read_npz_first(bytes: &[u8]) -> Result<Vec<u8>, String> {
             "array '{name}' is {size} bytes decompressed, more than the {MAX_NPZ_ARRAY_BYTES} allowed"
         ));
     }
-    let mut out = Vec::with_capacity(size as usize);
-    // Read one byte past the declared size: a member that inflates beyond
-    // it is corrupt (and must not grow without bound).
+    // No allocation from the declared size: the buffer grows with what
+    // really inflates, and reading stops one byte past the declared size (a
+    // member that inflates beyond it is corrupt and must not grow without
+    // bound).
+    let mut out = Vec::new();
     file.by_ref()
         .take(size + 1)
         .read_to_end(&mut out)
@@ -484,5 +486,12 @@ mod tests {
             .unwrap_err()
             .contains("not a .npz"));
         assert!(read_npz_first(b"").unwrap_err().contains("not a .npz"));
+        // A central directory that claims 2 GiB for the member: refused
+        // before anything is inflated.
+        let mut huge = bytes.clone();
+        let cd = huge.windows(4).position(|w| w == b"PK\x01\x02").unwrap();
+        huge[cd + 24..cd + 28].copy_from_slice(&0x8000_0000u32.to_le_bytes());
+        let e = read_npz_first(&huge).unwrap_err();
+        assert!(e.contains("2147483648 bytes decompressed"), "{e}");
     }
 }
