@@ -26,6 +26,20 @@ pub struct Args {
     /// Hide the panels (clean screenshots)
     #[arg(long, hide = true)]
     pub no_ui: bool,
+    /// Replay the recovery file of an earlier session with the same inputs
+    /// (files, scene, script, working folder) instead of starting fresh.
+    /// Without --restore / --no-restore the editor asks when that session
+    /// left edits behind
+    #[arg(long, conflicts_with = "no_restore")]
+    pub restore: bool,
+    /// Start fresh even if an earlier session left a recovery file (it is
+    /// kept as <name>.previous.json when this session first records)
+    #[arg(long)]
+    pub no_restore: bool,
+    /// Folder of the recovery files (default: $ISRF_RECOVERY_DIR, else
+    /// $XDG_STATE_HOME/isrf/recovery, else ~/.local/state/isrf/recovery)
+    #[arg(long, value_name = "DIR")]
+    pub recovery_dir: Option<PathBuf>,
 }
 
 fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
@@ -51,6 +65,12 @@ pub fn run(a: Args) -> Result<()> {
         screenshot: a.screenshot,
         size: a.size,
         no_ui: a.no_ui,
+        restore: match (a.restore, a.no_restore) {
+            (true, _) => Some(true),
+            (_, true) => Some(false),
+            _ => None,
+        },
+        recovery_dir: a.recovery_dir,
     })?;
     Ok(())
 }

@@ -21,6 +21,7 @@ use crate::app::convert::{bevy_transform, from_bevy_transform, projection_for, t
 use crate::app::gpu::{MarchScene, RayMarchCamera, RayMarchPlugin};
 use crate::app::layers::{build_scene, FieldLayer, ObjectLayer, OverlayMode, Preview, Selected, SessionName};
 use crate::camera::Camera as IsrfCamera;
+use crate::command::recovery::{self, Inputs, Recorder, RecoveryDoc, StartStep};
 use crate::command::{Command, FieldSource, Session, StrokeSource};
 use crate::segment::stroke::StrokeDoc;
 use crate::segment::{Polarity, Stroke};
@@ -33,7 +34,7 @@ use bevy_panorbit_camera::{PanOrbitCamera, PanOrbitCameraPlugin};
 use camera::{aim_orbit, EditorCamera};
 use session::{EditorSession, Request};
 use state::{CurrentStroke, EditorState, StrokeMsg};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// What to open and how.
@@ -53,6 +54,13 @@ pub struct EditorOptions {
     pub size: (u32, u32),
     /// Hide the panels (clean screenshots).
     pub no_ui: bool,
+    /// A recovery file of an earlier session with the same inputs:
+    /// `Some(true)` replays it instead of the start-up requests,
+    /// `Some(false)` starts fresh, `None` offers it in a dialog
+    /// (screenshot runs start fresh).
+    pub restore: Option<bool>,
+    /// Where recovery files go (default [`recovery::default_dir`]).
+    pub recovery_dir: Option<PathBuf>,
 }
 
 fn is_composition(p: &std::path::Path) -> bool {
@@ -102,6 +110,79 @@ pub fn startup_requests(opts: &EditorOptions) -> Result<Vec<Request>> {
         out.extend(script.commands.into_iter().map(Request::Apply));
     }
     Ok(out)
+}
+
+/// What crash recovery does at start-up.
+#[derive(Debug, Default)]
+pub struct RecoveryPlan {
+    /// Writes this session's recovery file (none in screenshot runs: they
+    /// are scripted, nothing of them can be lost).
+    pub recorder: Option<Recorder>,
+    /// Replay this instead of the start-up requests (`--restore`).
+    pub restore: Option<RecoveryDoc>,
+    /// Offer this in a dialog.
+    pub offer: Option<RecoveryDoc>,
+    /// Problems to show: an unreadable recovery file, `--restore` with
+    /// nothing to restore.
+    pub notes: Vec<String>,
+}
+
+/// The start-up requests as a recovery file names them.
+fn start_steps(requests: &[Request]) -> Vec<StartStep> {
+    requests
+        .iter()
+        .filter_map(|r| match r {
+            Request::Apply(c) => Some(StartStep::Apply(c.clone())),
+            Request::Open(p) => Some(StartStep::Open(p.clone())),
+            Request::Undo | Request::Redo | Request::Restore(_) => None,
+        })
+        .collect()
+}
+
+/// Finds the recovery file of these start-up requests (started in `cwd`)
+/// and decides, from `opts.restore`, whether to replay it, offer it or
+/// start fresh.
+pub fn recovery_plan(opts: &EditorOptions, cwd: &Path, requests: &[Request]) -> RecoveryPlan {
+    let inputs = Inputs {
+        cwd: cwd.to_path_buf(),
+        start: start_steps(requests),
+    };
+    let dir = opts.recovery_dir.clone().unwrap_or_else(recovery::default_dir);
+    let recorder = Recorder::new(inputs.file_in(&dir), inputs.clone());
+    let interactive = opts.screenshot.is_none();
+    let mut plan = RecoveryPlan::default();
+    let found = if recorder.path.exists() {
+        match RecoveryDoc::load(&recorder.path) {
+            Ok(d) if d.inputs == inputs => Some(d),
+            Ok(_) => {
+                plan.notes.push(format!(
+                    "{} belongs to other inputs: not restored",
+                    recorder.path.display()
+                ));
+                None
+            }
+            Err(e) => {
+                plan.notes.push(format!(
+                    "the recovery file is unreadable, not restored: {e} (kept as {})",
+                    recorder.previous_path().display()
+                ));
+                None
+            }
+        }
+    } else {
+        None
+    };
+    match (opts.restore, found) {
+        (Some(true), Some(d)) => plan.restore = Some(d),
+        (Some(true), None) => plan.notes.push(format!(
+            "--restore: nothing to restore (no recovery file {})",
+            recorder.path.display()
+        )),
+        (None, Some(d)) if interactive && d.has_edits_beyond_start() => plan.offer = Some(d),
+        _ => {}
+    }
+    plan.recorder = interactive.then_some(recorder);
+    plan
 }
 
 /// The editor's model side with no window, input or GPU: the session
@@ -434,8 +515,13 @@ pub fn keyboard_shortcuts(
 
 /// The object of the last `Stroke` among `requests`.
 fn last_stroked(requests: &[Request]) -> Option<String> {
+    let stroked = |c: &Command| match c {
+        Command::Stroke { object, .. } => Some(object.clone()),
+        _ => None,
+    };
     requests.iter().rev().find_map(|r| match r {
-        Request::Apply(Command::Stroke { object, .. }) => Some(object.clone()),
+        Request::Apply(c) => stroked(c),
+        Request::Restore(d) => d.commands.iter().rev().find_map(stroked),
         _ => None,
     })
 }
@@ -443,7 +529,12 @@ fn last_stroked(requests: &[Request]) -> Option<String> {
 /// Opens the editor window and runs until it is closed (or, with
 /// `screenshot`, until the screenshot is saved).
 pub fn run(opts: EditorOptions) -> Result<()> {
-    let requests = startup_requests(&opts)?;
+    let mut requests = startup_requests(&opts)?;
+    let cwd = std::env::current_dir().map_err(|e| Error::io(".", e))?;
+    let plan = recovery_plan(&opts, &cwd, &requests);
+    if let Some(doc) = plan.restore {
+        requests = vec![Request::Restore(Box::new(doc))];
+    }
     let (w, h) = if opts.size.0 == 0 { (1280, 720) } else { opts.size };
     let mut app = App::new();
     app.add_plugins(DefaultPlugins.set(WindowPlugin {
@@ -455,13 +546,19 @@ pub fn run(opts: EditorOptions) -> Result<()> {
         ..default()
     }))
     .add_plugins(bevy::diagnostic::FrameTimeDiagnosticsPlugin::default());
-    let cwd = std::env::current_dir().map_err(|e| Error::io(".", e))?;
     let mut es = EditorSession::new(Session::new(cwd.clone(), cwd));
+    if let Some(r) = plan.recorder {
+        es = es.with_recorder(r);
+    }
+    es.offer = plan.offer.map(Box::new);
     // The last object a start-up script strokes starts selected.
-    let state = EditorState {
+    let mut state = EditorState {
         pending_select: last_stroked(&requests),
         ..default()
     };
+    for n in plan.notes {
+        state.error(n);
+    }
     for r in requests {
         es.push(r);
     }

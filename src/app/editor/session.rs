@@ -4,11 +4,17 @@
 //! block the frame loop. The session moves into the task and back; the
 //! panels show the last finished state meanwhile. After each change the
 //! entities are re-synced from the session's state ([`sync_entities`]).
+//!
+//! Survival: a command that fails or panics leaves the last good state
+//! (reported in the status line and the error list); with a [`Recorder`],
+//! the edit log goes to a recovery file after every request, inside the
+//! task (checksumming a newly named field file stays off the frame loop).
 
 use super::state::EditorState;
 use crate::app::convert::bevy_transform;
 use crate::app::layers::{FieldLayer, ObjectLayer, SessionName};
 use crate::command::composition;
+use crate::command::recovery::{self, Recorder, RecoveryDoc};
 use crate::command::session::{State, StepOutput};
 use crate::command::{Command, Session};
 use crate::util::{Progress, ProgressState};
@@ -16,7 +22,7 @@ use crate::Result;
 use bevy::prelude::*;
 use bevy::tasks::{futures::check_ready, AsyncComputeTaskPool, Task};
 use std::collections::VecDeque;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// One queued request.
@@ -29,6 +35,8 @@ pub enum Request {
     Redo,
     /// Replace the session by a composition file.
     Open(PathBuf),
+    /// Replace the session by replaying a recovery file.
+    Restore(Box<RecoveryDoc>),
 }
 
 impl Request {
@@ -38,11 +46,21 @@ impl Request {
             Request::Undo => "undo".into(),
             Request::Redo => "redo".into(),
             Request::Open(p) => format!("opening {}", p.display()),
+            Request::Restore(d) => format!("restoring {} edits", d.commands.len()),
         }
     }
 }
 
-type Outcome = (Session, Result<StepOutput>);
+/// What a finished request hands back: the session (the last good one if
+/// the request failed), the recorder, the result, and problems that did
+/// not stop the request (a recovery file that could not be written, a
+/// restore that differs from the recorded state).
+struct Outcome {
+    session: Session,
+    recorder: Option<Recorder>,
+    result: Result<StepOutput>,
+    warnings: Vec<String>,
+}
 
 struct Running {
     label: String,
@@ -69,6 +87,16 @@ pub struct EditorSession {
     pub log_len: usize,
     /// The session's progress handle (kept across `Open`).
     progress: Progress,
+    /// Writes the recovery file after each request (`None` while a request
+    /// runs, or when the editor records nothing).
+    recorder: Option<Recorder>,
+    /// The recorder's file (also while a task holds the recorder).
+    recovery_path: Option<PathBuf>,
+    /// A recovery file of an earlier session with the same inputs, offered
+    /// for restoring until the user decides. Nothing is recorded meanwhile,
+    /// so that the offered file stays where it is should this session die
+    /// too.
+    pub offer: Option<Box<RecoveryDoc>>,
 }
 
 impl EditorSession {
@@ -84,6 +112,43 @@ impl EditorSession {
             can_redo: false,
             finished: 0,
             log_len: 0,
+            recorder: None,
+            recovery_path: None,
+            offer: None,
+        }
+    }
+    /// Records the edit log with `recorder` after every request.
+    pub fn with_recorder(mut self, recorder: Recorder) -> Self {
+        self.recovery_path = Some(recorder.path.clone());
+        self.recorder = Some(recorder);
+        self
+    }
+    /// The recovery file being written, if any.
+    pub fn recovery_path(&self) -> Option<&Path> {
+        self.recovery_path.as_deref()
+    }
+    /// Declines the offered recovery: its file is moved aside to
+    /// `<name>.previous.json` (not offered again, not lost), and recording
+    /// starts with the next request.
+    pub fn decline_offer(&mut self) -> Result<()> {
+        if self.offer.take().is_none() {
+            return Ok(());
+        }
+        let Some(path) = &self.recovery_path else {
+            return Ok(());
+        };
+        let prev = Recorder::previous_of(path);
+        match std::fs::rename(path, &prev) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(crate::Error::io(&prev, e)),
+            _ => Ok(()),
+        }
+    }
+    /// Accepts the offered recovery: requests not yet started (the
+    /// start-up's) are dropped, and the session is replaced by the replay.
+    pub fn accept_offer(&mut self) {
+        if let Some(doc) = self.offer.take() {
+            self.queue.clear();
+            self.push(Request::Restore(doc));
         }
     }
     pub fn push(&mut self, r: Request) {
@@ -117,8 +182,34 @@ impl EditorSession {
     }
 }
 
-fn run(mut session: Session, r: Request) -> Outcome {
-    let out = match &r {
+/// Applies one request, then records the edit log.
+fn run(session: Session, mut recorder: Option<Recorder>, r: Request) -> Outcome {
+    let mut warnings = Vec::new();
+    let (session, result) = apply_request(session, recorder.as_mut(), &r, &mut warnings);
+    if let Some(rec) = recorder.as_mut() {
+        if let Err(e) = rec.record(&session) {
+            warnings.push(format!("the recovery file could not be written: {e}"));
+        }
+    }
+    Outcome {
+        session,
+        recorder,
+        result,
+        warnings,
+    }
+}
+
+/// Applies one request. A panic inside it (a bug, never the user's fault)
+/// becomes an error: `Session::apply` builds the next state aside and
+/// swaps it in only on success, so the session is the last good one.
+fn apply_request(
+    mut session: Session,
+    recorder: Option<&mut Recorder>,
+    r: &Request,
+    warnings: &mut Vec<String>,
+) -> (Session, Result<StepOutput>) {
+    let progress = session.progress.clone();
+    let result = crate::error::catch_panic(r.label().as_str(), || match r {
         Request::Apply(c) => session.apply(c),
         Request::Undo => Ok(StepOutput {
             message: session
@@ -133,20 +224,35 @@ fn run(mut session: Session, r: Request) -> Outcome {
             ..Default::default()
         }),
         Request::Open(p) => {
-            let out_dir = session.out_dir.clone();
-            match composition::load(p, &out_dir) {
-                Ok(mut s) => {
-                    s.progress = session.progress.clone();
-                    session = s;
-                    Ok(StepOutput {
-                        message: format!("opened {}", p.display()),
-                        ..Default::default()
-                    })
-                }
-                Err(e) => Err(e),
+            let mut s = composition::load(p, &session.out_dir)?;
+            s.progress = progress.clone();
+            session = s;
+            Ok(StepOutput {
+                message: format!("opened {}", p.display()),
+                ..Default::default()
+            })
+        }
+        Request::Restore(doc) => {
+            let (s, report) = recovery::restore(doc, &progress)?;
+            session = s;
+            if !report.identical {
+                warnings.push(report.message());
+            }
+            Ok(StepOutput {
+                message: report.message(),
+                ..Default::default()
+            })
+        }
+    });
+    if result.is_ok() {
+        if let Some(rec) = recorder {
+            match r {
+                Request::Open(p) => rec.opened = Some(p.clone()),
+                Request::Restore(doc) => rec.opened = doc.opened.clone(),
+                _ => {}
             }
         }
-    };
+    }
     // The GPU view draws VM fields through an SH bake: make it here, off the
     // frame loop, rather than in the render world's upload.
     for f in &session.state.fields {
@@ -154,13 +260,19 @@ fn run(mut session: Session, r: Request) -> Outcome {
             return (session, Err(e));
         }
     }
-    (session, out)
+    (session, result)
 }
 
 /// Collects the finished request and starts the next one.
 pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState>, mut names: Query<&mut SessionName>) {
     if let Some(running) = es.running.as_mut() {
-        let Some((session, result)) = check_ready(&mut running.task) else {
+        let Some(Outcome {
+            session,
+            recorder,
+            result,
+            warnings,
+        }) = check_ready(&mut running.task)
+        else {
             return;
         };
         let running = es.running.take().unwrap();
@@ -174,6 +286,10 @@ pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState
                             n.0 = name.clone();
                         }
                     }
+                }
+                if let Request::Restore(_) = &running.request {
+                    // Scripted restores (`--restore --screenshot`) read it in the log.
+                    info!("{}", out.message);
                 }
                 if let Some(t) = out.timings {
                     state.last_timings = Some(t);
@@ -192,6 +308,10 @@ pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState
                 state.error(e);
             }
         }
+        for w in warnings {
+            state.error(w);
+        }
+        es.recorder = recorder;
         es.can_undo = session.can_undo();
         es.can_redo = session.can_redo();
         es.log_len = session.log().len();
@@ -203,9 +323,11 @@ pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState
         return;
     };
     let session = es.session.take().expect("no request runs, so the session is here");
+    // While a recovery is offered nothing is recorded (see `offer`).
+    let recorder = if es.offer.is_some() { None } else { es.recorder.take() };
     let label = request.label();
     let r = request.clone();
-    let task = AsyncComputeTaskPool::get().spawn(async move { run(session, r) });
+    let task = AsyncComputeTaskPool::get().spawn(async move { run(session, recorder, r) });
     state.bypass_change_detection().status = format!("{label}…");
     es.running = Some(Running {
         label,

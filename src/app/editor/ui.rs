@@ -129,6 +129,7 @@ pub fn panels(
     let free = root.available_rect_before_wrap();
     draw_stroke(&ctx, &stroke, &state);
     draw_gizmo(&ctx, &gizmo);
+    recovery_dialog(&ctx, &mut es, &mut state);
 
     if let Some(s) = select {
         for old in &selected {
@@ -172,6 +173,83 @@ pub fn panels(
         }
     }
     Ok(())
+}
+
+/// "3 stroke, 1 transform": the kinds of `commands`, counted, in order of
+/// first appearance.
+fn command_summary(commands: &[Command]) -> String {
+    let mut counts: Vec<(&str, usize)> = Vec::new();
+    for c in commands {
+        match counts.iter_mut().find(|(k, _)| *k == c.kind()) {
+            Some((_, n)) => *n += 1,
+            None => counts.push((c.kind(), 1)),
+        }
+    }
+    let parts: Vec<String> = counts
+        .iter()
+        .map(|(k, n)| format!("{n} {}", k.replace('_', " ")))
+        .collect();
+    parts.join(", ")
+}
+
+/// "12 s", "5 min", "3 h", "2 days": how long ago `written` (Unix seconds) was.
+fn age(written: u64) -> String {
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(written, |d| d.as_secs());
+    let s = now.saturating_sub(written);
+    match s {
+        0..=119 => format!("{s} s"),
+        120..=7199 => format!("{} min", s / 60),
+        7200..=172_799 => format!("{} h", s / 3600),
+        _ => format!("{} days", s / 86_400),
+    }
+}
+
+/// The restore offer: an earlier session with the same inputs ended
+/// without its edits being redone by a fresh start (a crash, a kill).
+/// Modal: the choice comes before new edits.
+fn recovery_dialog(ctx: &egui::Context, es: &mut EditorSession, state: &mut EditorState) {
+    let Some(doc) = es.offer.as_deref() else {
+        return;
+    };
+    let kept = es
+        .recovery_path()
+        .map(|p| crate::command::recovery::Recorder::previous_of(p).display().to_string())
+        .unwrap_or_default();
+    let mut choice = None;
+    egui::Modal::new(egui::Id::new("isrf_restore")).show(ctx, |ui| {
+        ui.set_max_width(460.0);
+        ui.heading("Restore the last session?");
+        ui.label(format!(
+            "An earlier session with these inputs stopped {} ago. Its edit log holds {} commands, more than a fresh start redoes ({}).",
+            age(doc.written),
+            doc.commands.len(),
+            command_summary(&doc.commands)
+        ));
+        if let Some(p) = &doc.opened {
+            ui.label(format!("It was opened from {}.", p.display()));
+        }
+        ui.label("Restore replays them and checks that the state is identical to the recorded one.");
+        ui.label(egui::RichText::new(format!("Start fresh keeps the recovery file as {kept}.")).small());
+        ui.horizontal(|ui| {
+            if ui.button("Restore").clicked() {
+                choice = Some(true);
+            }
+            if ui.button("Start fresh").clicked() {
+                choice = Some(false);
+            }
+        });
+    });
+    match choice {
+        Some(true) => es.accept_offer(),
+        Some(false) => {
+            if let Err(e) = es.decline_offer() {
+                state.error(format!("the recovery file could not be moved aside: {e}"));
+            }
+        }
+        None => {}
+    }
 }
 
 fn path_of(s: &str) -> Option<PathBuf> {
