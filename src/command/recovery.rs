@@ -29,6 +29,8 @@ pub const VERSION: u32 = 1;
 
 /// One start-up step of the editor: open a composition, or apply a command
 /// (the fields named on the command line, the `--script`'s commands).
+// A start-up holds a handful: boxing the large `Command` buys nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum StartStep {
