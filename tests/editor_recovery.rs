@@ -167,6 +167,83 @@ fn failures_keep_the_last_good_state_and_the_recovery_file_follows_every_command
     );
 }
 
+/// The start-up's decision: replay (`--restore`), offer, or start fresh.
+#[test]
+fn a_recovery_file_is_offered_restored_or_set_aside_as_asked() {
+    use isrf::app::editor::{recovery_plan, EditorOptions};
+    let dir = tempfile::tempdir().unwrap();
+    let opts = |restore: Option<bool>, screenshot: bool| EditorOptions {
+        restore,
+        screenshot: screenshot.then(|| dir.path().join("shot.png")),
+        recovery_dir: Some(dir.path().join("rec")),
+        ..Default::default()
+    };
+    let start = vec![Request::Apply(load_demo())];
+    // Nothing recorded yet: a recorder, nothing to offer.
+    let plan = recovery_plan(&opts(None, false), dir.path(), &start);
+    assert!(plan.offer.is_none() && plan.restore.is_none() && plan.notes.is_empty());
+    let mut rec = plan.recorder.expect("interactive sessions record");
+    // Screenshot runs record nothing.
+    assert!(recovery_plan(&opts(None, true), dir.path(), &start).recorder.is_none());
+    // A killed session that only got through the start-up: not offered.
+    let mut s = Session::new(dir.path(), dir.path());
+    s.apply(&load_demo()).unwrap();
+    rec.record(&s).unwrap();
+    assert!(recovery_plan(&opts(None, false), dir.path(), &start).offer.is_none());
+    // One with the user's edits: offered (interactive only), or replayed.
+    s.apply(&stroke("mug")).unwrap();
+    rec.record(&s).unwrap();
+    let offered = recovery_plan(&opts(None, false), dir.path(), &start).offer.unwrap();
+    assert_eq!(offered.commands.len(), 2);
+    assert!(recovery_plan(&opts(None, true), dir.path(), &start).offer.is_none());
+    assert!(recovery_plan(&opts(Some(false), false), dir.path(), &start)
+        .offer
+        .is_none());
+    let plan = recovery_plan(&opts(Some(true), true), dir.path(), &start);
+    assert_eq!(plan.restore.as_ref(), Some(&offered));
+    // Other inputs have their own file.
+    let other = vec![Request::Apply(stroke("pot"))];
+    assert!(recovery_plan(&opts(None, false), dir.path(), &other).offer.is_none());
+    let plan = recovery_plan(&opts(Some(true), false), dir.path(), &other);
+    assert!(
+        plan.restore.is_none() && plan.notes[0].contains("nothing to restore"),
+        "{:?}",
+        plan.notes
+    );
+
+    // Accepting drops the queued start-up and replays the file.
+    let mut es = EditorSession::new(Session::new(dir.path(), dir.path()))
+        .with_recorder(recovery_plan(&opts(None, false), dir.path(), &start).recorder.unwrap());
+    es.offer = Some(Box::new(offered.clone()));
+    es.push(Request::Apply(load_demo()));
+    es.accept_offer();
+    let app = app_with(es);
+    let es = app.world().resource::<EditorSession>();
+    assert_eq!(state_digest(&es.state), offered.state);
+    assert_eq!(es.state.objects.len(), 1);
+
+    // Declining moves the file aside: kept, not offered again.
+    let path = rec.path.clone();
+    let mut es = EditorSession::new(Session::new(dir.path(), dir.path())).with_recorder(rec);
+    es.offer = Some(Box::new(offered.clone()));
+    es.decline_offer().unwrap();
+    assert!(!path.exists());
+    let kept = RecoveryDoc::load(&Recorder::previous_of(&path)).unwrap();
+    assert_eq!(
+        (kept.commands, kept.state),
+        (offered.commands.clone(), offered.state.clone())
+    );
+    assert!(recovery_plan(&opts(None, false), dir.path(), &start).offer.is_none());
+    // A corrupt file is reported, not offered.
+    std::fs::write(&path, "{").unwrap();
+    let plan = recovery_plan(&opts(None, false), dir.path(), &start);
+    assert!(
+        plan.offer.is_none() && plan.notes[0].contains("unreadable"),
+        "{:?}",
+        plan.notes
+    );
+}
+
 // ------------------------------------------------------------ under Xvfb
 
 fn have(cmd: &str) -> bool {
