@@ -148,10 +148,17 @@ fn failures_keep_the_last_good_state_and_the_recovery_file_follows_every_command
             transform: TransformSpec::translation(glam::Vec3::new(0.2, 0.0, 0.1)),
         }),
     );
+    // The user saves over the composition the session was opened from:
+    // the replay opens the copy taken when it was opened, not the new file.
+    push(
+        &mut app,
+        Request::Apply(Command::Export(Export::Composition { out: comp.clone() })),
+    );
     let doc = recorded(&app);
     assert_eq!(doc.opened.as_deref(), Some(comp.as_path()));
+    let copy = doc.opened_copy.clone().expect("a copy of the opened composition");
     assert_eq!(doc.commands.len(), 1);
-    assert!(doc.files.iter().any(|f| f.path == comp));
+    assert!(doc.files.iter().any(|f| f.path == copy));
     let (s, report) = restore(&doc, &Progress::default()).unwrap();
     assert!(report.identical, "{}", report.message());
     assert_eq!(s.state.objects.len(), 1);

@@ -2,7 +2,9 @@
 //! every command, so that a crash or a killed process loses nothing.
 //!
 //! A recovery file is JSON: what the editor was started with ([`Inputs`]),
-//! the composition the session was opened from (if any), the edits since
+//! the composition the session was opened from (if any, with a copy of it
+//! as it was when opened: saving over the original must not spoil the
+//! replay), the edits since
 //! opening as a script's command list (`commands`, the same serialised
 //! [`Command`]s `isrf run` reads), the input files those name with their
 //! size and CRC-32, and a digest of the state the commands produced.
@@ -104,8 +106,12 @@ pub struct RecoveryDoc {
     /// The folders the session resolved input and output paths against.
     pub base_dir: PathBuf,
     pub out_dir: PathBuf,
-    /// The composition the session was opened from; replay opens it first.
+    /// The composition the session was opened from.
     pub opened: Option<PathBuf>,
+    /// A copy of it saved when it was opened (beside the recovery file);
+    /// replay opens this one, so the user may save over the original.
+    #[serde(default)]
+    pub opened_copy: Option<PathBuf>,
     /// The edits since opening, oldest first (undone ones excluded).
     pub commands: Vec<Command>,
     /// The input files the composition and the commands read.
@@ -177,9 +183,10 @@ pub fn default_dir() -> PathBuf {
 pub struct Recorder {
     pub path: PathBuf,
     pub inputs: Inputs,
-    /// The composition the session was opened from (the editor sets it on
-    /// open and restore).
+    /// The composition the session was opened from and its copy (see
+    /// [`Recorder::opened`], [`Recorder::restored`]).
     pub opened: Option<PathBuf>,
+    pub opened_copy: Option<PathBuf>,
     /// Stamps of files already seen (a field file is read once).
     stamps: HashMap<PathBuf, FileStamp>,
     /// Whether the file at `path` is ours (an older one was moved aside).
@@ -192,6 +199,7 @@ impl Recorder {
             path,
             inputs,
             opened: None,
+            opened_copy: None,
             stamps: HashMap::new(),
             owns_file: false,
         }
@@ -206,11 +214,32 @@ impl Recorder {
         path.with_extension("previous.json")
     }
 
+    /// `session` was just opened from the composition `path`: a copy of
+    /// it goes beside the recovery file (`<name>.opened.json` and its
+    /// bitmaps; field files by absolute path), for the replay.
+    pub fn opened(&mut self, path: &Path, session: &Session) -> Result<()> {
+        // Without a copy, the replay opens the original.
+        self.opened = Some(path.to_path_buf());
+        self.opened_copy = None;
+        let copy = self.path.with_extension("opened.json");
+        super::composition::save(session, &copy)?;
+        self.stamps.remove(&copy);
+        self.opened_copy = Some(copy);
+        Ok(())
+    }
+
+    /// The session was just restored from `doc`.
+    pub fn restored(&mut self, doc: &RecoveryDoc) {
+        self.opened = doc.opened.clone();
+        self.opened_copy = doc.opened_copy.clone();
+    }
+
     /// The recovery document of `session` as it stands.
     pub fn doc(&mut self, session: &Session) -> Result<RecoveryDoc> {
         let commands = session.log();
         let mut files = Vec::new();
-        for p in input_files(session, self.opened.as_deref(), &commands) {
+        let replayed = self.opened_copy.as_ref().or(self.opened.as_ref());
+        for p in input_files(session, replayed.map(PathBuf::as_path), &commands) {
             if !self.stamps.contains_key(&p) {
                 let s = FileStamp::of(&p)?;
                 self.stamps.insert(p.clone(), s);
@@ -227,6 +256,7 @@ impl Recorder {
             base_dir: session.base_dir.clone(),
             out_dir: session.out_dir.clone(),
             opened: self.opened.clone(),
+            opened_copy: self.opened_copy.clone(),
             commands,
             files,
             state: state_digest(&session.state),
@@ -315,7 +345,7 @@ impl RestoreReport {
 /// edits before it (reported, not an error, so that they are not lost).
 pub fn restore(doc: &RecoveryDoc, progress: &Progress) -> Result<(Session, RestoreReport)> {
     doc.check_files()?;
-    let mut session = match &doc.opened {
+    let mut session = match doc.opened_copy.as_ref().or(doc.opened.as_ref()) {
         Some(p) => super::composition::load(p, &doc.out_dir)?,
         None => Session::new(&doc.base_dir, &doc.out_dir),
     };

@@ -247,8 +247,12 @@ fn apply_request(
     if result.is_ok() {
         if let Some(rec) = recorder {
             match r {
-                Request::Open(p) => rec.opened = Some(p.clone()),
-                Request::Restore(doc) => rec.opened = doc.opened.clone(),
+                Request::Open(p) => {
+                    if let Err(e) = rec.opened(p, &session) {
+                        warnings.push(format!("the recovery copy of {} could not be saved: {e}", p.display()));
+                    }
+                }
+                Request::Restore(doc) => rec.restored(doc),
                 _ => {}
             }
         }
