@@ -19,34 +19,14 @@ use isrf::app::editor::session::{EditorSession, Request};
 use isrf::app::editor::state::EditorState;
 use isrf::app::editor::EditorCorePlugin;
 use isrf::command::recovery::{restore, state_digest, Inputs, Recorder, RecoveryDoc, StartStep};
-use isrf::command::{Command, Export, FieldSource, Session, StrokeSource, TransformSpec};
+use isrf::command::{Command, Export, Session, TransformSpec};
 use isrf::util::Progress;
 use std::path::{Path, PathBuf};
 use std::process::Command as Process;
 use std::time::{Duration, Instant};
 
-const RES: usize = 40;
-
-fn load_demo() -> Command {
-    Command::LoadField {
-        name: "tabletop".into(),
-        source: FieldSource::Demo {
-            scene: "tabletop".into(),
-            res: RES,
-            seed: 0,
-        },
-        transform: None,
-    }
-}
-
-fn stroke(object: &str) -> Command {
-    Command::Stroke {
-        object: object.into(),
-        field: None,
-        polarity: None,
-        source: StrokeSource::Demo { object: object.into() },
-    }
-}
+mod common;
+use common::{demo_stroke as stroke, load_demo, DEMO_RES as RES};
 
 fn app_with(es: EditorSession) -> App {
     let mut app = App::new();

@@ -5,33 +5,13 @@
 //! Xvfb is in `tests/editor_recovery.rs`.
 
 use isrf::command::recovery::{restore, state_digest, Inputs, Recorder, RecoveryDoc, StartStep};
-use isrf::command::{Command, FieldSource, Session, StrokeSource, TransformSpec};
+use isrf::command::{Command, FieldSource, Session, TransformSpec};
 use isrf::render::ColorEdit;
 use isrf::util::Progress;
 use std::path::Path;
 
-const RES: usize = 40;
-
-fn load_demo() -> Command {
-    Command::LoadField {
-        name: "tabletop".into(),
-        source: FieldSource::Demo {
-            scene: "tabletop".into(),
-            res: RES,
-            seed: 0,
-        },
-        transform: None,
-    }
-}
-
-fn stroke(object: &str) -> Command {
-    Command::Stroke {
-        object: object.into(),
-        field: None,
-        polarity: None,
-        source: StrokeSource::Demo { object: object.into() },
-    }
-}
+mod common;
+use common::{demo_stroke as stroke, load_demo};
 
 fn inputs(dir: &Path, start: Vec<Command>) -> Inputs {
     Inputs {

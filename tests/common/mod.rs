@@ -4,6 +4,7 @@ use std::path::Path;
 
 /// A minimal `.npy` writer (format 1.0, C order): `descr` is the numpy type
 /// string (`<f4`, `<f8`), `payload` the little-endian values.
+#[allow(dead_code)]
 pub fn write_npy(path: &Path, shape: &[usize], descr: &str, payload: &[u8]) {
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
     let shape = if dims.len() == 1 {
@@ -21,4 +22,33 @@ pub fn write_npy(path: &Path, shape: &[usize], descr: &str, payload: &[u8]) {
     bytes.extend(header.as_bytes());
     bytes.extend(payload);
     std::fs::write(path, bytes).unwrap();
+}
+
+/// The demo tabletop at 40³ as a script command (small enough for tests that
+/// replay sessions many times).
+#[allow(dead_code)]
+pub const DEMO_RES: usize = 40;
+
+#[allow(dead_code)]
+pub fn load_demo() -> isrf::command::Command {
+    isrf::command::Command::LoadField {
+        name: "tabletop".into(),
+        source: isrf::command::FieldSource::Demo {
+            scene: "tabletop".into(),
+            res: DEMO_RES,
+            seed: 0,
+        },
+        transform: None,
+    }
+}
+
+/// A stroke from the demo's built-in stroke for `object`.
+#[allow(dead_code)]
+pub fn demo_stroke(object: &str) -> isrf::command::Command {
+    isrf::command::Command::Stroke {
+        object: object.into(),
+        field: None,
+        polarity: None,
+        source: isrf::command::StrokeSource::Demo { object: object.into() },
+    }
 }
