@@ -25,6 +25,10 @@ impl SplitMix64 {
     pub fn below(&mut self, n: usize) -> usize {
         (self.unit() * n as f64) as usize % n.max(1)
     }
+    /// A uniformly chosen element (`items` must not be empty).
+    pub fn pick<'a, T>(&mut self, items: &'a [T]) -> &'a T {
+        &items[self.below(items.len())]
+    }
 }
 
 /// Milliseconds elapsed since `t`.

@@ -1,31 +1,10 @@
-//! Deterministic input mutation: a small PRNG and byte-level mutations
+//! Deterministic input mutation: byte-level mutations
 //! (bit flips, byte sets, boundary integers, truncation, splices, inserts,
 //! deletes, repeated chunks and number tweaks for text formats).
 
-/// SplitMix64: tiny, fast and fully determined by its seed, so a run with
+/// The library's SplitMix64: fully determined by its seed, so a run with
 /// the same seed tries the same inputs.
-#[derive(Clone, Debug)]
-pub struct Rng(u64);
-
-impl Rng {
-    pub fn new(seed: u64) -> Self {
-        Rng(seed)
-    }
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-    /// Uniform in `0..n` (`n` ≥ 1).
-    pub fn below(&mut self, n: usize) -> usize {
-        (self.next_u64() % n.max(1) as u64) as usize
-    }
-    pub fn pick<'a, T>(&mut self, items: &'a [T]) -> &'a T {
-        &items[self.below(items.len())]
-    }
-}
+pub use crate::util::SplitMix64 as Rng;
 
 /// Integers at the edges of the usual widths: where size and offset
 /// arithmetic overflows or wraps.
