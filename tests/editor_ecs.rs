@@ -15,6 +15,9 @@ use isrf::render::{Layer, Scene};
 use isrf::segment::{apply_region, region_from_stroke, Polarity, SegmentParams, Stroke};
 use std::sync::Arc;
 
+mod common;
+use common::settle;
+
 const RES: usize = 40;
 
 fn app() -> App {
@@ -34,20 +37,6 @@ fn app() -> App {
         .add_plugins(EditorCorePlugin);
     settle(&mut app);
     app
-}
-
-/// Updates until the session has no queued or running request.
-fn settle(app: &mut App) {
-    for _ in 0..20_000 {
-        app.update();
-        if !app.world().resource::<EditorSession>().busy() {
-            // One more frame so entities mirror the final state.
-            app.update();
-            return;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
-    panic!("the session never finished its requests");
 }
 
 fn objects(app: &mut App) -> Vec<(String, Arc<isrf::field::Bitmap>, bool)> {

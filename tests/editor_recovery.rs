@@ -26,6 +26,7 @@ use std::process::Command as Process;
 use std::time::{Duration, Instant};
 
 mod common;
+use common::settle;
 use common::{demo_stroke as stroke, load_demo, DEMO_RES as RES};
 
 fn app_with(es: EditorSession) -> App {
@@ -35,19 +36,6 @@ fn app_with(es: EditorSession) -> App {
         .add_plugins(EditorCorePlugin);
     settle(&mut app);
     app
-}
-
-/// Updates until the session has no queued or running request.
-fn settle(app: &mut App) {
-    for _ in 0..20_000 {
-        app.update();
-        if !app.world().resource::<EditorSession>().busy() {
-            app.update();
-            return;
-        }
-        std::thread::sleep(Duration::from_millis(2));
-    }
-    panic!("the session never finished its requests");
 }
 
 fn push(app: &mut App, r: Request) {

@@ -52,3 +52,20 @@ pub fn demo_stroke(object: &str) -> isrf::command::Command {
         source: isrf::command::StrokeSource::Demo { object: object.into() },
     }
 }
+
+/// Updates a headless editor app until its session has no queued or running
+/// request, then one more frame so entities mirror the final state.
+#[cfg(feature = "editor")]
+#[allow(dead_code)]
+pub fn settle(app: &mut bevy::prelude::App) {
+    use isrf::app::editor::session::EditorSession;
+    for _ in 0..20_000 {
+        app.update();
+        if !app.world().resource::<EditorSession>().busy() {
+            app.update();
+            return;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    panic!("the session never finished its requests");
+}
