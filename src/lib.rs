@@ -17,9 +17,11 @@ pub mod error;
 pub mod eval;
 pub mod field;
 pub mod fuzz;
+pub mod lift;
 pub mod npy;
 pub mod render;
 pub mod segment;
+pub mod splat;
 pub mod train;
 pub mod util;
 

@@ -39,6 +39,12 @@ enum Command {
     Edit(cli::edit::Args),
     /// Mutation-fuzz one of the file readers (`--list` names them); ends with `inputs: n, errors: n, panics: n`.
     Fuzz(cli::fuzz::Args),
+    /// Import a 3D Gaussian splat .ply (INRIA layout) as a field.
+    Import(cli::import::Args),
+    /// Add teacher features to a field, its geometry frozen (from a capture or rendered orbit views).
+    Features(cli::features::Args),
+    /// Write a field, an object or its complement as a 3D Gaussian splat .ply.
+    ExportSplats(cli::splats::Args),
 }
 
 /// `isrf info F | head` must end quietly when its reader goes away, as Unix
@@ -70,6 +76,9 @@ fn main() {
         Command::Bench(a) => cli::bench::run(a),
         Command::Edit(a) => cli::edit::run(a),
         Command::Fuzz(a) => cli::fuzz::run(a),
+        Command::Import(a) => cli::import::run(a),
+        Command::Features(a) => cli::features::run(a),
+        Command::ExportSplats(a) => cli::splats::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

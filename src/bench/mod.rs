@@ -8,10 +8,12 @@
 //! - [`train`]: trainer throughput per stage and phase.
 //! - [`quality`]: segmentation quality with exact ground truth on fields
 //!   trained from renders of the demo scenes.
+//! - [`splats`]: splat import speed; one-stroke selection of splats.
 
 pub mod quality;
 pub mod render;
 pub mod segment;
+pub mod splats;
 pub mod train;
 
 use std::fmt;

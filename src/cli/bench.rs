@@ -26,6 +26,10 @@ pub enum What {
     /// `isrf train` does, real teacher) on renders of the demo scenes, every
     /// object segmented from one stroke with the default parameters.
     Quality(QualityArgs),
+    /// Import time of a splat .ply (a synthetic 1M-Gaussian file by default).
+    Import(super::bench_splats::ImportArgs),
+    /// One-stroke selection of splats: exported Gaussians against exact ground truth.
+    Splats(super::bench_splats::SplatArgs),
 }
 
 #[derive(clap::Args)]
@@ -91,6 +95,8 @@ pub fn run(a: Args) -> Result<()> {
         What::Editor(a) => super::edit::bench(a),
         What::Train(a) => run_train(a),
         What::Quality(a) => run_quality(a),
+        What::Import(a) => super::bench_splats::run_import(a),
+        What::Splats(a) => super::bench_splats::run_splats(a),
     }
 }
 

@@ -148,6 +148,9 @@ pub struct Header {
     /// its own index).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub feature_occupied: Option<usize>,
+    /// The splat file an imported field came from (readers before it ignore it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<super::Source>,
 }
 
 impl Header {
@@ -438,6 +441,7 @@ fn plan(field: &Field, feature_storage: Storage) -> Result<(Out<'_>, Header)> {
         occupied: occ.map(|o| o.count()),
         density,
         feature_occupied,
+        source: field.source.clone(),
     };
     Ok((out, header))
 }
@@ -1063,7 +1067,7 @@ pub fn load(path: &Path) -> Result<Field> {
         Some(FeaturesHeader::Vm(v)) => Some(Features::Vm(read_vm(&t, "feat.vm", v, bounds)?)),
         None => None,
     };
-    Ok(Field::new(
+    let mut field = Field::new(
         DensityGrid {
             geom,
             raw,
@@ -1072,7 +1076,9 @@ pub fn load(path: &Path) -> Result<Field> {
         appearance,
         features,
         occupancy,
-    ))
+    );
+    field.source = h.source;
+    Ok(field)
 }
 
 impl Field {

@@ -50,6 +50,16 @@ impl Features {
     }
 }
 
+/// The file a field was imported from (a 3D Gaussian splat `.ply`), so
+/// that exports can go back to its records.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Source {
+    pub path: std::path::PathBuf,
+    pub crc32: u32,
+    /// Gaussians in the file.
+    pub count: usize,
+}
+
 #[derive(Debug)]
 pub struct Field {
     pub density: DensityGrid,
@@ -61,6 +71,8 @@ pub struct Field {
     /// its own index). The file stores the density for these points only
     /// when every other point holds one value.
     pub occupancy: Option<Arc<RankIndex>>,
+    /// Where an imported field came from (kept in the file's header).
+    pub source: Option<Source>,
     cache: OnceLock<Arc<FeatureCache>>,
     macro_grid: OnceLock<MacroGrid>,
     /// This field with VM appearance baked into SH (GPU view), on first use.
@@ -74,6 +86,7 @@ impl Clone for Field {
             appearance: self.appearance.clone(),
             features: self.features.clone(),
             occupancy: self.occupancy.clone(),
+            source: self.source.clone(),
             cache: OnceLock::new(),
             macro_grid: OnceLock::new(),
             baked: OnceLock::new(),
@@ -93,6 +106,7 @@ impl Field {
             appearance,
             features,
             occupancy,
+            source: None,
             cache: OnceLock::new(),
             macro_grid: OnceLock::new(),
             baked: OnceLock::new(),

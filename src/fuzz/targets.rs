@@ -140,6 +140,20 @@ pub static TARGETS: &[Target] = &[
         },
     },
     Target {
+        name: "splat-ply",
+        about: "3D Gaussian splat .ply files, read and imported on a 16-point grid",
+        file: "input.ply",
+        seeds: |_| crate::splat::fuzz_seeds(),
+        corpus: corpus!(
+            "splat-ply",
+            "normals-and-extra.ply",
+            "huge-count.ply",
+            "compressed-chunk.ply",
+            "ascii.ply",
+        ),
+        run: crate::splat::fuzz_run,
+    },
+    Target {
         name: "transforms",
         about: "camera sets: transforms.json (Blender / nerfstudio)",
         file: "transforms.json",

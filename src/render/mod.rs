@@ -77,6 +77,11 @@ impl ColorEdit {
         Ok(())
     }
     pub fn apply(&self, c: Vec3) -> Vec3 {
+        self.linear(c).clamp(Vec3::ZERO, Vec3::ONE)
+    }
+    /// The edit before clamping: a linear map of the colour (splat export
+    /// applies it to every spherical-harmonic coefficient).
+    pub fn linear(&self, c: Vec3) -> Vec3 {
         // Hue rotation about the grey axis (Rodrigues), then saturation about
         // the luma, so that hue and saturation edits keep brightness.
         let mut c = c;
@@ -87,8 +92,7 @@ impl ColorEdit {
         }
         let luma = c.dot(Vec3::new(0.2126, 0.7152, 0.0722));
         c = Vec3::splat(luma) + (c - Vec3::splat(luma)) * self.saturation;
-        c = c * self.brightness * Vec3::from(self.tint);
-        c.clamp(Vec3::ZERO, Vec3::ONE)
+        c * self.brightness * Vec3::from(self.tint)
     }
 }
 

@@ -1,0 +1,158 @@
+//! Splat benchmarks: import speed on a large synthetic file, and one-stroke
+//! selection of splats against exact ground truth.
+//!
+//! The selection benchmark builds a demo scene, samples Gaussians on its
+//! surfaces with their object labels ([`crate::splat::synth`]), writes them
+//! as a `.ply`, imports it, lifts teacher features from views rendered
+//! around it (`isrf features --orbit`), segments every object from the
+//! demo's built-in positive stroke with the default parameters and compares
+//! the Gaussians the object exports with the ones on it, by count and by
+//! opacity mass (τ·2π·s₂·s₃, the import's mass).
+
+use crate::demo;
+use crate::error::{Error, Result};
+use crate::field::Field;
+use crate::lift::{lift, orbit_views};
+use crate::render::Scene;
+use crate::segment::{region_from_stroke, SegmentParams};
+use crate::splat::import::{import_file, inside, ImportOptions, ImportReport};
+use crate::splat::ply::{standard_bytes, SplatFile};
+use crate::splat::synth::{from_demo, SynthScene};
+use crate::train::TeacherSource;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Writes a synthetic splat file of exactly `n` Gaussians (the tabletop
+/// demo at `res`, several Gaussians per surface voxel) to `path`.
+pub fn write_synthetic(path: &Path, n: usize, res: usize) -> Result<()> {
+    let scene = demo::build("tabletop", res, 0)?;
+    let one = from_demo(&scene, 1, 0).gaussians.len();
+    crate::ensure!(one > 0, "the demo scene has no surface");
+    let mut s = from_demo(&scene, n.div_ceil(one), 0);
+    s.gaussians.truncate(n);
+    write_scene(path, &s)
+}
+
+fn write_scene(path: &Path, s: &SynthScene) -> Result<()> {
+    let bytes = standard_bytes(&s.gaussians, 3).map_err(Error::invalid)?;
+    crate::error::write_atomic(path, &bytes)
+}
+
+/// Import time of a splat file (reading included, saving not).
+pub fn bench_import(path: &Path, opts: &ImportOptions) -> Result<(ImportReport, f64)> {
+    let t0 = Instant::now();
+    let (_, report) = import_file(path, opts)?;
+    Ok((report, t0.elapsed().as_secs_f64()))
+}
+
+#[derive(Clone, Debug)]
+pub struct SplatBenchConfig {
+    pub scenes: Vec<String>,
+    pub res: usize,
+    pub orbit: usize,
+    pub teacher: TeacherSource,
+    pub dims: usize,
+    pub cache_dir: Option<PathBuf>,
+    /// Where the .ply and field files go.
+    pub work: PathBuf,
+}
+
+/// One object's row.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SplatRow {
+    pub scene: String,
+    pub object: String,
+    pub true_gaussians: usize,
+    pub selected: usize,
+    pub iou_count: f64,
+    pub iou_mass: f64,
+}
+
+/// Runs the selection benchmark (module docs); `log` hears each stage.
+pub fn bench_splats(cfg: &SplatBenchConfig, log: &(dyn Fn(&str) + Sync)) -> Result<Vec<SplatRow>> {
+    let mut rows = vec![];
+    for name in &cfg.scenes {
+        let scene = demo::build(name, cfg.res, 0)?;
+        let synth = from_demo(&scene, 1, 7);
+        let ply = cfg.work.join(format!("{name}.ply"));
+        write_scene(&ply, &synth)?;
+        let (field, r) = import_file(&ply, &ImportOptions::default())?;
+        log(&format!(
+            "{name}: {} Gaussians imported to a {:?} grid ({} occupied points)",
+            synth.gaussians.len(),
+            r.res,
+            r.occupied
+        ));
+        let field = Arc::new(field);
+        let views = orbit_views(&field, cfg.orbit, &|_, _| ())?;
+        let (field, lr) = lift(
+            &field,
+            &views,
+            &cfg.teacher,
+            cfg.dims,
+            cfg.cache_dir.as_deref(),
+            &|_, _, _| (),
+        )?;
+        log(&format!(
+            "{name}: features from {} orbit views ({:.0} % of points seen)",
+            cfg.orbit,
+            100.0 * lr.seen as f64 / lr.points.max(1) as f64
+        ));
+        field.save(&cfg.work.join(format!("{name}.features.safetensors")))?;
+        rows.extend(score_objects(&scene, &synth, &field)?);
+    }
+    Ok(rows)
+}
+
+fn score_objects(scene: &demo::DemoScene, synth: &SynthScene, field: &Field) -> Result<Vec<SplatRow>> {
+    let field = Arc::new(field.clone());
+    let file = crate::splat::export::source_file(&field)?;
+    let cache = field.feature_cache()?;
+    let render_scene = Scene::single(field.clone());
+    let mass: Vec<f64> = (0..file.len()).map(|i| opacity_mass(&file, i)).collect();
+    let mut rows = vec![];
+    for o in &scene.objects {
+        let Some(stroke) = crate::eval::protocol::demo_stroke(scene, &o.name) else {
+            continue;
+        };
+        let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, &SegmentParams::default())?;
+        let picked = inside(&file, &field.geom(), &region, |p| p);
+        let truth: Vec<bool> = synth.labels.iter().map(|&l| l == o.label).collect();
+        rows.push(SplatRow {
+            scene: scene.name.clone(),
+            object: o.name.clone(),
+            true_gaussians: truth.iter().filter(|&&t| t).count(),
+            selected: picked.iter().filter(|&&t| t).count(),
+            iou_count: iou(&picked, &truth, |_| 1.0),
+            iou_mass: iou(&picked, &truth, |i| mass[i]),
+        });
+    }
+    Ok(rows)
+}
+
+/// τ·2π·s₂·s₃ of Gaussian `i`.
+fn opacity_mass(file: &SplatFile, i: usize) -> f64 {
+    let g = file.gaussian(i);
+    let mut s = g.scales().to_array();
+    s.sort_by(f32::total_cmp);
+    let tau = -(1.0 - g.alpha().min(0.995) as f64).ln();
+    tau * std::f64::consts::TAU * s[1] as f64 * s[2] as f64
+}
+
+fn iou(a: &[bool], b: &[bool], w: impl Fn(usize) -> f64) -> f64 {
+    let (mut inter, mut union) = (0.0, 0.0);
+    for i in 0..a.len() {
+        if a[i] || b[i] {
+            union += w(i);
+            if a[i] && b[i] {
+                inter += w(i);
+            }
+        }
+    }
+    if union > 0.0 {
+        inter / union
+    } else {
+        1.0
+    }
+}

