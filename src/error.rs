@@ -14,9 +14,37 @@ pub enum Error {
     /// A file that exists but whose contents are not what we expect.
     #[error("{path}: {reason}")]
     BadFile { path: PathBuf, reason: String },
-    /// Bad in-memory input: wrong shapes, NaN, absurd sizes, bad parameters.
+    /// Bad in-memory input: wrong shapes, NaN, bad parameters.
     #[error("{0}")]
     Invalid(String),
+    /// A step of a script (1-based) that is invalid or failed, with why.
+    #[error("step {step} ({kind}): {error}")]
+    Step {
+        step: usize,
+        kind: &'static str,
+        error: Box<Error>,
+    },
+    /// A field or object name that names nothing; `known` lists what does.
+    #[error("no {kind} named '{name}' (there are: {})", list_or_none(.known))]
+    UnknownName {
+        kind: &'static str,
+        name: String,
+        known: Vec<String>,
+    },
+    /// A number outside what is accepted (resolutions, counts, image sizes).
+    #[error("{0}")]
+    OutOfRange(String),
+    /// More than the GPU or the machine allows (texture sizes, buffer sizes).
+    #[error("{0}")]
+    DeviceLimit(String),
+}
+
+fn list_or_none(names: &[String]) -> String {
+    if names.is_empty() {
+        "none".into()
+    } else {
+        names.join(", ")
+    }
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
@@ -36,6 +64,34 @@ impl Error {
     }
     pub fn invalid(reason: impl Into<String>) -> Self {
         Error::Invalid(reason.into())
+    }
+    pub fn out_of_range(reason: impl Into<String>) -> Self {
+        Error::OutOfRange(reason.into())
+    }
+    pub fn device_limit(reason: impl Into<String>) -> Self {
+        Error::DeviceLimit(reason.into())
+    }
+    pub fn unknown_name(kind: &'static str, name: &str, known: &[&str]) -> Self {
+        Error::UnknownName {
+            kind,
+            name: name.into(),
+            known: known.iter().map(|n| n.to_string()).collect(),
+        }
+    }
+    /// `self` as the failure of script step `step` (1-based) of `kind`.
+    pub fn at_step(self, step: usize, kind: &'static str) -> Self {
+        Error::Step {
+            step,
+            kind,
+            error: Box::new(self),
+        }
+    }
+    /// The error inside any step wrapping (what actually went wrong).
+    pub fn root(&self) -> &Error {
+        match self {
+            Error::Step { error, .. } => error.root(),
+            e => e,
+        }
     }
 }
 

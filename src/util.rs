@@ -89,3 +89,54 @@ pub fn human_bytes(n: usize) -> String {
         format!("{:.1} GB", n / (1024.0 * 1024.0 * 1024.0))
     }
 }
+
+/// A path's extension, lower-cased ("" when it has none): the one rule by
+/// which file kinds are told apart (scripts, compositions, meshes, images).
+pub fn extension(path: &std::path::Path) -> String {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .unwrap_or_default()
+}
+
+/// The smallest |determinant| of an invertible transform's linear part: the
+/// one threshold for every transform read or built (composition documents,
+/// script transforms, render layers, mesh export).
+pub const MIN_DETERMINANT: f32 = 1e-12;
+
+/// Whether `a` is finite and invertible (see [`MIN_DETERMINANT`]).
+pub fn invertible(a: &glam::Affine3A) -> bool {
+    let det = a.matrix3.determinant();
+    det.is_finite() && det.abs() > MIN_DETERMINANT && a.translation.is_finite()
+}
+
+/// An affine map from a row-major 4×4 matrix (JSON `transform_matrix`,
+/// composition transforms, script `matrix`). The bottom row is ignored.
+pub fn affine_from_rows(m: &[[f32; 4]; 4]) -> glam::Affine3A {
+    glam::Affine3A::from_mat4(glam::Mat4::from_cols_array_2d(m).transpose())
+}
+
+/// The row-major 4×4 matrix of an affine map.
+pub fn affine_to_rows(a: &glam::Affine3A) -> [[f32; 4]; 4] {
+    let m = glam::Mat4::from(*a).transpose();
+    [
+        m.x_axis.to_array(),
+        m.y_axis.to_array(),
+        m.z_axis.to_array(),
+        m.w_axis.to_array(),
+    ]
+}
+
+/// Serde for an affine map stored as a row-major 4×4 matrix
+/// (`#[serde(with = "crate::util::rows")]`). Reading checks nothing: the
+/// reader of the document says what is wrong with which transform.
+pub mod rows {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(a: &glam::Affine3A, s: S) -> Result<S::Ok, S::Error> {
+        super::affine_to_rows(a).serialize(s)
+    }
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<glam::Affine3A, D::Error> {
+        Ok(super::affine_from_rows(&<[[f32; 4]; 4]>::deserialize(d)?))
+    }
+}

@@ -2,9 +2,10 @@
 
 use glam::Vec3;
 use isrf::camera::{Camera, Intrinsics};
-use isrf::command::script::{load_script, parse_script, run_script, save_script, validate_script, Format};
+use isrf::command::script::{load_script, parse_script, save_script, Format};
 use isrf::command::{
-    composition, CameraSource, Command, Export, FieldSource, Script, Session, StrokeSource, TransformSpec,
+    composition, perform, run_script, validate_script, CameraSource, Command, Edit, Export, FieldSource, Output,
+    Script, Session, StrokeSource, TransformSpec,
 };
 use isrf::field::{Aabb, FieldBuilder};
 use isrf::render::{render, ColorEdit, RenderOptions};
@@ -12,8 +13,8 @@ use std::path::Path;
 
 const RES: usize = 48;
 
-fn demo(name: &str, scene: &str) -> Command {
-    Command::LoadField {
+fn demo(name: &str, scene: &str) -> Edit {
+    Edit::LoadField {
         name: name.into(),
         source: FieldSource::Demo {
             scene: scene.into(),
@@ -24,8 +25,8 @@ fn demo(name: &str, scene: &str) -> Command {
     }
 }
 
-fn stroke(object: &str, field: &str, demo_object: &str) -> Command {
-    Command::Stroke {
+fn stroke(object: &str, field: &str, demo_object: &str) -> Edit {
+    Edit::Stroke {
         object: object.into(),
         field: Some(field.into()),
         polarity: None,
@@ -59,8 +60,8 @@ fn max_diff(a: &[Vec3], b: &[Vec3]) -> f32 {
 }
 
 /// Colour frames on an orbit around the tabletop, into `frames/`.
-fn orbit_render(frames: usize, width: u32, height: u32) -> Command {
-    Command::Render {
+fn orbit_render(frames: usize, width: u32, height: u32) -> Output {
+    Output::Render {
         cameras: CameraSource::Orbit {
             center: [0.0, -0.2, 0.0],
             radius: 2.0,
@@ -89,13 +90,13 @@ fn tabletop_with_pot() -> Session {
 fn remove_then_restore_is_the_original() {
     let mut s = tabletop_with_pot();
     let original = image(&s);
-    s.apply(&Command::Remove { object: "pot".into() }).unwrap();
+    s.apply(&Edit::Remove { object: "pot".into() }).unwrap();
     let removed = image(&s);
     assert!(
         max_diff(&original, &removed) > 0.2,
         "removing the pot must change the picture"
     );
-    s.apply(&Command::Restore { object: "pot".into() }).unwrap();
+    s.apply(&Edit::Restore { object: "pot".into() }).unwrap();
     assert_eq!(image(&s), original);
 }
 
@@ -104,14 +105,14 @@ fn translate_there_and_back_is_the_original() {
     let mut s = tabletop_with_pot();
     let original = image(&s);
     let t = Vec3::new(-0.41, -0.42, 0.55);
-    s.apply(&Command::Transform {
+    s.apply(&Edit::Transform {
         object: "pot".into(),
         transform: TransformSpec::translation(t),
     })
     .unwrap();
     let moved = image(&s);
     assert!(max_diff(&original, &moved) > 0.2, "the pot must have moved");
-    s.apply(&Command::Transform {
+    s.apply(&Edit::Transform {
         object: "pot".into(),
         transform: TransformSpec::translation(-t),
     })
@@ -131,20 +132,20 @@ fn rotation_about_the_object_centre_keeps_it_in_place() {
         rotate: [0.0, 180.0, 0.0],
         ..Default::default()
     };
-    s.apply(&Command::Transform {
+    s.apply(&Edit::Transform {
         object: "pot".into(),
         transform: spin.clone(),
     })
     .unwrap();
-    s.apply(&Command::Transform {
+    s.apply(&Edit::Transform {
         object: "pot".into(),
         transform: spin,
     })
     .unwrap();
     let o = s.object("pot").unwrap();
-    let m = o.transform.matrix3;
+    let m = o.placement.transform.matrix3;
     assert!((glam::Mat3::from(m) - glam::Mat3::IDENTITY).abs_diff_eq(glam::Mat3::ZERO, 1e-5));
-    assert!(Vec3::from(o.transform.translation).length() < 1e-4);
+    assert!(Vec3::from(o.placement.transform.translation).length() < 1e-4);
 }
 
 #[test]
@@ -154,14 +155,14 @@ fn composition_with_an_empty_field_changes_nothing() {
         FieldBuilder::new(Aabb::new(Vec3::splat(-0.5), Vec3::splat(0.5)), [8; 3]).build(|_| 0.0, |_| Vec3::ONE, None);
     empty.save(&dir.path().join("empty.safetensors")).unwrap();
     let mut s = tabletop_with_pot();
-    s.apply(&Command::Transform {
+    s.apply(&Edit::Transform {
         object: "pot".into(),
         transform: TransformSpec::translation(Vec3::new(0.1, 0.0, 0.2)),
     })
     .unwrap();
     let before = image(&s);
     s.base_dir = dir.path().to_path_buf();
-    s.apply(&Command::LoadField {
+    s.apply(&Edit::LoadField {
         name: "nothing".into(),
         source: FieldSource::File("empty.safetensors".into()),
         transform: Some(TransformSpec::translation(Vec3::new(0.1, -0.3, 0.2))),
@@ -174,7 +175,7 @@ fn composition_with_an_empty_field_changes_nothing() {
 fn undo_redo_return_to_identical_states() {
     let mut s = tabletop_with_pot();
     let a = image(&s);
-    s.apply(&Command::Appearance {
+    s.apply(&Edit::Appearance {
         object: "pot".into(),
         edit: ColorEdit {
             hue: 120.0,
@@ -183,7 +184,7 @@ fn undo_redo_return_to_identical_states() {
     })
     .unwrap();
     let b = image(&s);
-    s.apply(&Command::Remove { object: "pot".into() }).unwrap();
+    s.apply(&Edit::Remove { object: "pot".into() }).unwrap();
     let c = image(&s);
     assert_ne!(a, b);
     assert_ne!(b, c);
@@ -199,7 +200,7 @@ fn undo_redo_return_to_identical_states() {
     assert!(s.redo().is_none());
     // A new edit after an undo drops the redo branch.
     s.undo().unwrap();
-    s.apply(&Command::SetVisible {
+    s.apply(&Edit::SetVisible {
         target: "pot".into(),
         visible: false,
     })
@@ -208,7 +209,7 @@ fn undo_redo_return_to_identical_states() {
     // Failed commands change nothing and are not logged.
     let n = s.log().len();
     assert!(s
-        .apply(&Command::Remove { object: "nope".into() })
+        .apply(&Edit::Remove { object: "nope".into() })
         .unwrap_err()
         .to_string()
         .contains("no object named 'nope'"));
@@ -219,7 +220,7 @@ fn undo_redo_return_to_identical_states() {
 fn negative_stroke_and_duplicates() {
     let mut s = tabletop_with_pot();
     let pot = s.object("pot").unwrap().mask.count();
-    s.apply(&Command::Duplicate {
+    s.apply(&Edit::Duplicate {
         object: "pot".into(),
         name: "pot2".into(),
         transform: Some(TransformSpec::translation(Vec3::new(0.5, 0.0, 0.0))),
@@ -227,7 +228,7 @@ fn negative_stroke_and_duplicates() {
     .unwrap();
     // The duplicate does not cut its source: the original pot still renders in place.
     let mut solo = tabletop_with_pot();
-    solo.apply(&Command::SetVisible {
+    solo.apply(&Edit::SetVisible {
         target: "room".into(),
         visible: true,
     })
@@ -237,7 +238,7 @@ fn negative_stroke_and_duplicates() {
     s.apply(&stroke("table", "room", "table")).unwrap();
     let table = s.object("table").unwrap().mask.clone();
     let before = s.object("pot").unwrap().mask.intersection_count(&table).unwrap();
-    s.apply(&Command::Stroke {
+    s.apply(&Edit::Stroke {
         object: "pot".into(),
         field: None,
         polarity: Some(isrf::segment::Polarity::Negative),
@@ -251,7 +252,7 @@ fn negative_stroke_and_duplicates() {
     );
     // A negative stroke cannot create an object.
     let e = s
-        .apply(&Command::Stroke {
+        .apply(&Edit::Stroke {
             object: "ghost".into(),
             field: None,
             polarity: Some(isrf::segment::Polarity::Negative),
@@ -284,47 +285,51 @@ fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
 }
 
 fn small_script() -> Script {
+    let edits = vec![
+        demo("room", "tabletop"),
+        demo("shelf", "shelf"),
+        Edit::SetVisible {
+            target: "shelf".into(),
+            visible: false,
+        },
+        stroke("pot", "room", "pot"),
+        Edit::Remove { object: "pot".into() },
+        stroke("digger", "shelf", "excavator"),
+        Edit::Transform {
+            object: "digger".into(),
+            transform: TransformSpec::translation(Vec3::new(0.0, -0.095, -0.1)),
+        },
+        Edit::Appearance {
+            object: "digger".into(),
+            edit: ColorEdit {
+                hue: 90.0,
+                ..Default::default()
+            },
+        },
+    ];
+    let outputs = vec![
+        orbit_render(2, 48, 36),
+        Output::Export(Export::Masks {
+            object: "digger".into(),
+            cameras: CameraSource::Demo {
+                field: "room".into(),
+                eval: true,
+            },
+            out: "masks".into(),
+            downscale: 4,
+        }),
+        Output::Export(Export::Mesh {
+            target: "digger".into(),
+            out: "digger.ply".into(),
+            iso: None,
+        }),
+        Output::Export(Export::Composition {
+            out: "comp.json".into(),
+        }),
+    ];
+    let commands = edits.into_iter().map(Command::Edit);
     Script {
-        commands: vec![
-            demo("room", "tabletop"),
-            demo("shelf", "shelf"),
-            Command::SetVisible {
-                target: "shelf".into(),
-                visible: false,
-            },
-            stroke("pot", "room", "pot"),
-            Command::Remove { object: "pot".into() },
-            stroke("digger", "shelf", "excavator"),
-            Command::Transform {
-                object: "digger".into(),
-                transform: TransformSpec::translation(Vec3::new(0.0, -0.095, -0.1)),
-            },
-            Command::Appearance {
-                object: "digger".into(),
-                edit: ColorEdit {
-                    hue: 90.0,
-                    ..Default::default()
-                },
-            },
-            orbit_render(2, 48, 36),
-            Command::Export(Export::Masks {
-                object: "digger".into(),
-                cameras: CameraSource::Demo {
-                    field: "room".into(),
-                    eval: true,
-                },
-                out: "masks".into(),
-                downscale: 4,
-            }),
-            Command::Export(Export::Mesh {
-                target: "digger".into(),
-                out: "digger.ply".into(),
-                iso: None,
-            }),
-            Command::Export(Export::Composition {
-                out: "comp.json".into(),
-            }),
-        ],
+        commands: commands.chain(outputs.into_iter().map(Command::Output)).collect(),
     }
 }
 
@@ -426,14 +431,14 @@ fn compositions_round_trip_and_report_changed_files() {
     scene.field.save(&dir.path().join("shelf.safetensors")).unwrap();
     let mut s = Session::new(dir.path(), dir.path());
     s.apply(&demo("room", "tabletop")).unwrap();
-    s.apply(&Command::LoadField {
+    s.apply(&Edit::LoadField {
         name: "shelf".into(),
         source: FieldSource::File("shelf.safetensors".into()),
         transform: None,
     })
     .unwrap();
     s.apply(&stroke("pot", "room", "pot")).unwrap();
-    s.apply(&Command::Transform {
+    s.apply(&Edit::Transform {
         object: "pot".into(),
         transform: TransformSpec {
             translate: [0.1, 0.0, 0.3],
@@ -442,7 +447,7 @@ fn compositions_round_trip_and_report_changed_files() {
         },
     })
     .unwrap();
-    s.apply(&Command::Appearance {
+    s.apply(&Edit::Appearance {
         object: "pot".into(),
         edit: ColorEdit {
             saturation: 0.0,
@@ -450,7 +455,7 @@ fn compositions_round_trip_and_report_changed_files() {
         },
     })
     .unwrap();
-    s.apply(&Command::SetVisible {
+    s.apply(&Edit::SetVisible {
         target: "shelf".into(),
         visible: false,
     })
@@ -460,7 +465,34 @@ fn compositions_round_trip_and_report_changed_files() {
     composition::save(&s, &doc).unwrap();
     let back = composition::load(&doc, dir.path()).unwrap();
     assert_eq!(image(&back), before);
-    assert_eq!(back.state.objects.len(), 1);
+    assert_eq!(back.state().objects.len(), 1);
+    // Objects keep the keys documents always had (the placement is
+    // flattened into them), and RON documents read back the same.
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(&doc).unwrap()).unwrap();
+    let mut keys: Vec<&str> = json["objects"][0]
+        .as_object()
+        .unwrap()
+        .keys()
+        .map(|k| k.as_str())
+        .collect();
+    keys.sort();
+    assert_eq!(
+        keys,
+        [
+            "color_edit",
+            "duplicate",
+            "field",
+            "name",
+            "removed",
+            "transform",
+            "visible"
+        ]
+    );
+    let ron_doc = dir.path().join("comp.ron");
+    composition::save(&s, &ron_doc).unwrap();
+    let back = composition::load(&ron_doc, dir.path()).unwrap();
+    assert_eq!(image(&back), before);
+    assert_eq!(back.state().objects[0].placement, s.state().objects[0].placement);
     // A changed field file is reported by name.
     let p = dir.path().join("shelf.safetensors");
     let mut bytes = std::fs::read(&p).unwrap();
@@ -482,22 +514,16 @@ fn composition_bitmap_resolution_error_names_the_files() {
     let scene = isrf::demo::build("shelf", RES, 0).unwrap();
     scene.field.save(&dir.path().join("shelf.safetensors")).unwrap();
     let mut s = Session::new(dir.path(), dir.path());
-    s.apply(&Command::LoadField {
+    s.apply(&Edit::LoadField {
         name: "shelf".into(),
         source: FieldSource::File("shelf.safetensors".into()),
         transform: None,
     })
     .unwrap();
-    s.state.objects.push(isrf::command::session::ObjectEntry {
-        name: "box".into(),
-        field: "shelf".into(),
-        mask: std::sync::Arc::new(isrf::field::Bitmap::new([4, 5, 6])),
-        transform: glam::Affine3A::IDENTITY,
-        removed: false,
-        visible: true,
-        duplicate: false,
-        color_edit: None,
-    });
+    let mut st = s.state().clone();
+    let mask = std::sync::Arc::new(isrf::field::Bitmap::new([4, 5, 6]));
+    st.add_object("box", st.fields[0].id, mask, Default::default());
+    let s = Session::with_state(dir.path(), dir.path(), st);
     let doc = dir.path().join("comp.json");
     composition::save(&s, &doc).unwrap();
     let e = composition::load(&doc, dir.path()).unwrap_err().to_string();
@@ -535,7 +561,7 @@ fn commands_report_progress_and_clear_it() {
         progress: s.progress.clone(),
         seen: vec![],
     };
-    s.apply_with(&render, Some(&mut probe)).unwrap();
+    perform(&mut s, &render.into(), Some(&mut probe)).unwrap();
     let want: Vec<(String, u64, u64)> = (0..3).map(|i| ("rendering".to_string(), i, 3)).collect();
     assert_eq!(probe.seen, want);
     assert!(s.progress.get().is_none());
@@ -572,23 +598,25 @@ fn script_strokes_may_name_a_view_of_the_fields_capture() {
     std::fs::write(dir.path().join("pot.json"), doc.to_string()).unwrap();
     let script = Script {
         commands: vec![
-            Command::LoadField {
+            Edit::LoadField {
                 name: "room".into(),
                 source: FieldSource::File("room.safetensors".into()),
                 transform: None,
-            },
-            Command::Stroke {
+            }
+            .into(),
+            Edit::Stroke {
                 object: "pot".into(),
                 field: None,
                 polarity: None,
                 source: StrokeSource::File("pot.json".into()),
-            },
+            }
+            .into(),
         ],
     };
     validate_script(&script, dir.path()).unwrap();
     let mut named = Session::new(dir.path(), dir.path());
     for c in &script.commands {
-        named.apply(c).unwrap();
+        perform(&mut named, c, None).unwrap();
     }
     // The same object as the demo's built-in stroke on the same camera.
     let builtin = tabletop_with_pot();
@@ -598,7 +626,128 @@ fn script_strokes_may_name_a_view_of_the_fields_capture() {
     // Without the cameras file the view cannot be found: a clear error.
     std::fs::remove_file(dir.path().join("room.cameras.json")).unwrap();
     let mut bare = Session::new(dir.path(), dir.path());
-    bare.apply(&script.commands[0]).unwrap();
-    let e = bare.apply(&script.commands[1]).unwrap_err().to_string();
+    perform(&mut bare, &script.commands[0], None).unwrap();
+    let e = perform(&mut bare, &script.commands[1], None).unwrap_err().to_string();
     assert!(e.contains("transform_matrix"), "{e}");
+}
+
+/// A `duplicate` with no transform shares its source's mask and placement:
+/// the original's 2D mask (probe) must still come from its field's layer,
+/// the copy's from its own.
+#[test]
+fn an_untransformed_duplicate_does_not_take_the_originals_layer() {
+    let mut s = Session::default();
+    s.apply(&demo("t", "tabletop")).unwrap();
+    s.apply(&stroke("pot", "t", "pot")).unwrap();
+    s.apply(&Edit::Duplicate {
+        object: "pot".into(),
+        name: "copy".into(),
+        transform: None,
+    })
+    .unwrap();
+    let composed = s.state().compose();
+    assert_eq!(composed.scene.layers.len(), 2, "the field, and the copy's own layer");
+    let probe = |name: &str| s.state().probe(&composed, s.object(name).unwrap().id).unwrap();
+    assert_eq!(probe("pot").layer, 0, "the original sits in its field's layer");
+    assert_eq!(probe("copy").layer, 1, "the copy has its own layer");
+}
+
+/// Undo reaches back a bounded number of edits; the edit log keeps them
+/// all; the grids of a field deleted before the oldest kept step are freed.
+#[test]
+fn undo_keeps_a_bounded_history_and_frees_deleted_fields() {
+    let mut s = Session::default().with_undo_limit(3);
+    assert_eq!(Session::default().undo_limit(), 100);
+    s.apply(&demo("room", "tabletop")).unwrap();
+    let grids = std::sync::Arc::downgrade(&s.state().fields[0].field);
+    s.apply(&Edit::Delete { target: "room".into() }).unwrap();
+    let k = |k| Edit::SetParams {
+        rule: None,
+        k: Some(k),
+        theta: None,
+        sigma_f: None,
+        sigma_s: None,
+        tau: None,
+        growth: None,
+        theta_grow: None,
+        solid_alpha: None,
+    };
+    s.apply(&k(4)).unwrap();
+    s.apply(&k(5)).unwrap();
+    assert!(grids.upgrade().is_some(), "undo can still bring the field back");
+    s.apply(&k(6)).unwrap();
+    assert!(grids.upgrade().is_none(), "the deleted field's grids are freed");
+    assert_eq!(s.log().len(), 5, "the log keeps every edit");
+    let mut undone = 0;
+    while s.undo().is_some() {
+        undone += 1;
+    }
+    assert_eq!(undone, 3);
+    assert_eq!(s.log().len(), 2);
+    assert!(s.state().fields.is_empty() && s.state().params.k != 4);
+    assert!(s.redo().is_some());
+    assert_eq!(s.state().params.k, 4);
+}
+
+/// Checking a script is a dry run of the session's own rules: what the run
+/// would refuse, the check refuses, at the same step, with an error a
+/// caller can match on.
+#[test]
+fn a_script_check_refuses_what_its_run_would() {
+    use isrf::Error;
+    let dir = tempfile::tempdir().unwrap();
+    let masks = Output::Export(Export::Masks {
+        object: "pot".into(),
+        cameras: CameraSource::Demo {
+            field: "room".into(),
+            eval: false,
+        },
+        out: "masks".into(),
+        downscale: 8,
+    });
+    let script = Script {
+        commands: vec![
+            demo("room", "tabletop").into(),
+            stroke("pot", "room", "pot").into(),
+            Edit::Remove { object: "pot".into() }.into(),
+            masks.into(),
+        ],
+    };
+    let checked = validate_script(&script, dir.path()).unwrap_err();
+    let ran = run_script(&script, dir.path(), &dir.path().join("out"), |_, _, _| {}).unwrap_err();
+    assert_eq!(checked.to_string(), ran.to_string());
+    assert!(
+        matches!(
+            checked,
+            Error::Step {
+                step: 4,
+                kind: "export",
+                ..
+            }
+        ),
+        "{checked}"
+    );
+    assert!(checked.to_string().contains("removed or hidden"), "{checked}");
+
+    let script = Script {
+        commands: vec![
+            demo("room", "tabletop").into(),
+            Edit::Rename {
+                target: "room".into(),
+                name: "kitchen".into(),
+            }
+            .into(),
+            Edit::Remove { object: "mug".into() }.into(),
+        ],
+    };
+    let e = validate_script(&script, dir.path()).unwrap_err();
+    assert!(matches!(e, Error::Step { step: 3, .. }), "{e}");
+    assert!(
+        matches!(e.root(), Error::UnknownName { kind: "object", name, .. } if name == "mug"),
+        "{e}"
+    );
+    assert_eq!(
+        e.to_string(),
+        "step 3 (remove): no object named 'mug' (there are: none)"
+    );
 }

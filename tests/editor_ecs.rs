@@ -10,7 +10,7 @@ use isrf::app::editor::state::StrokeMsg;
 use isrf::app::editor::EditorCorePlugin;
 use isrf::app::layers::{ObjectLayer, Selected, SessionName};
 use isrf::app::MarchScene;
-use isrf::command::{Command, FieldSource, Session};
+use isrf::command::{Edit, FieldSource, Session};
 use isrf::render::{Layer, Scene};
 use isrf::segment::{apply_region, region_from_stroke, Polarity, SegmentParams, Stroke};
 use std::sync::Arc;
@@ -23,7 +23,7 @@ const RES: usize = 40;
 fn app() -> App {
     let mut app = App::new();
     let mut es = EditorSession::new(Session::default());
-    es.apply(Command::LoadField {
+    es.apply(Edit::LoadField {
         name: "tabletop".into(),
         source: FieldSource::Demo {
             scene: "tabletop".into(),
@@ -157,19 +157,17 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
         .add_systems(Update, keyboard_shortcuts.before(EditorSystems::Model));
     // A tight seed and strokes without growth, so that the key's step has
     // work to do.
-    app.world_mut()
-        .resource_mut::<EditorSession>()
-        .apply(Command::SetParams {
-            rule: None,
-            k: None,
-            theta: Some(0.02),
-            sigma_f: None,
-            sigma_s: None,
-            tau: None,
-            growth: Some(Growth::Steps(0)),
-            theta_grow: None,
-            solid_alpha: None,
-        });
+    app.world_mut().resource_mut::<EditorSession>().apply(Edit::SetParams {
+        rule: None,
+        k: None,
+        theta: Some(0.02),
+        sigma_f: None,
+        sigma_s: None,
+        tau: None,
+        growth: Some(Growth::Steps(0)),
+        theta_grow: None,
+        solid_alpha: None,
+    });
     paint(&mut app, "mug");
     let (name, before, _) = objects(&mut app)[0].clone();
 
@@ -191,7 +189,7 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
     assert!(grown.count() > before.count(), "one more step adds voxels");
     assert!(matches!(
         es.session().unwrap().log().last(),
-        Some(Command::Grow {
+        Some(Edit::Grow {
             steps: Growth::Steps(1),
             ..
         })
@@ -219,11 +217,11 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
     app.world_mut().resource_mut::<EditorSession>().apply(cmd);
     settle(&mut app);
     let es = app.world().resource::<EditorSession>();
-    let placed = es.state.objects[0].transform;
+    let placed = es.state.objects[0].placement.transform;
     assert!((placed.translation - glam::Vec3A::new(0.3, 0.0, -0.2)).length() < 1e-5);
     assert!(matches!(
         es.session().unwrap().log().last(),
-        Some(Command::Transform { .. })
+        Some(Edit::Transform { .. })
     ));
 
     app.world_mut().resource_mut::<EditorSession>().push(Request::Undo);
@@ -349,9 +347,9 @@ fn a_mouse_drag_on_a_gizmo_ring_turns_the_object_about_that_axis() {
     let es = app.world().resource::<EditorSession>();
     assert!(matches!(
         es.session().unwrap().log().last(),
-        Some(Command::Transform { .. })
+        Some(Edit::Transform { .. })
     ));
-    let placed = isrf::app::convert::to_bevy_mat4(&es.state.objects[0].transform);
+    let placed = isrf::app::convert::to_bevy_mat4(&es.state.objects[0].placement.transform);
     let shown = app.world().get::<Transform>(entity).unwrap().to_matrix();
     assert!(placed.abs_diff_eq(shown, 1e-4), "{placed:?} vs {shown:?}");
 }

@@ -235,11 +235,13 @@ fn a_removed_object_leaves_no_shell_on_the_gpu() {
 #[test]
 fn scripts_render_on_the_gpu_like_on_the_cpu() {
     use isrf::app::headless::GpuFrames;
-    use isrf::command::{run_script_with, CameraSource, Command, FieldSource, Script, StrokeSource, TransformSpec};
+    use isrf::command::{
+        run_script_with, CameraSource, Edit, FieldSource, Output, Script, StrokeSource, TransformSpec,
+    };
     if skip() {
         return;
     }
-    let load = Command::LoadField {
+    let load = Edit::LoadField {
         name: "room".into(),
         source: FieldSource::Demo {
             scene: "tabletop".into(),
@@ -248,7 +250,7 @@ fn scripts_render_on_the_gpu_like_on_the_cpu() {
         },
         transform: None,
     };
-    let render_cmd = |width, height| Command::Render {
+    let render_cmd = |width, height| Output::Render {
         cameras: CameraSource::Orbit {
             center: [0.0, -0.2, 0.0],
             radius: 2.0,
@@ -266,20 +268,22 @@ fn scripts_render_on_the_gpu_like_on_the_cpu() {
     };
     let script = Script {
         commands: vec![
-            load,
-            Command::Stroke {
+            load.into(),
+            Edit::Stroke {
                 object: "mug".into(),
                 field: None,
                 polarity: None,
                 source: StrokeSource::Demo { object: "mug".into() },
-            },
-            Command::Transform {
+            }
+            .into(),
+            Edit::Transform {
                 object: "mug".into(),
                 transform: TransformSpec::translation(Vec3::new(0.25, 0.0, 0.1)),
-            },
+            }
+            .into(),
             // Two frame sizes: the GPU renderer is rebuilt for the second.
-            render_cmd(96, 72),
-            render_cmd(64, 48),
+            render_cmd(96, 72).into(),
+            render_cmd(64, 48).into(),
         ],
     };
     let dir = tempfile::tempdir().unwrap();
@@ -539,9 +543,9 @@ fn large_grids_stroke_move_and_undo_on_the_gpu() {
     if skip() {
         return;
     }
-    use isrf::command::{Command, FieldSource, StrokeSource};
+    use isrf::command::{Edit, FieldSource, StrokeSource};
     use isrf::segment::stroke::{CameraDoc, StrokeDoc};
-    let demo = |res: usize| Command::LoadField {
+    let demo = |res: usize| Edit::LoadField {
         name: "tabletop".into(),
         source: FieldSource::Demo {
             scene: "tabletop".into(),
@@ -550,7 +554,7 @@ fn large_grids_stroke_move_and_undo_on_the_gpu() {
         },
         transform: None,
     };
-    let mug = |source| Command::Stroke {
+    let mug = |source| Edit::Stroke {
         object: "mug".into(),
         field: None,
         polarity: None,
@@ -573,7 +577,7 @@ fn large_grids_stroke_move_and_undo_on_the_gpu() {
         object: "mug".into(),
     };
     drop(d);
-    let load = Command::LoadField {
+    let load = Edit::LoadField {
         name: "tabletop".into(),
         source: FieldSource::File(dir.path().join("field.safetensors")),
         transform: None,
@@ -581,12 +585,12 @@ fn large_grids_stroke_move_and_undo_on_the_gpu() {
     stroke_move_undo("512×512×128", load, mug(StrokeSource::Inline(doc)));
 }
 
-fn stroke_move_undo(what: &str, load: isrf::command::Command, stroke: isrf::command::Command) {
+fn stroke_move_undo(what: &str, load: isrf::command::Edit, stroke: isrf::command::Edit) {
     use isrf::app::layers::{build_scene, OverlayMode};
-    use isrf::command::{Command, Session, TransformSpec};
+    use isrf::command::{Edit, Session, TransformSpec};
     let mut s = Session::default();
     s.apply(&load).unwrap();
-    let field = s.state.fields[0].field.clone();
+    let field = s.state().fields[0].field.clone();
     eprintln!("{what}: grid {:?}", field.res());
     let (d, _) = demo();
     let c2w = d.cameras.frames[2].camera.c2w;
@@ -597,7 +601,7 @@ fn stroke_move_undo(what: &str, load: isrf::command::Command, stroke: isrf::comm
     };
     let mut r = HeadlessRenderer::new(W, H).unwrap();
     let mut draw = |s: &Session, state: &str| {
-        let (scene, _) = build_scene(&s.state, &[], None, mode);
+        let (scene, _) = build_scene(s.state(), &[], None, mode);
         let gpu = r.render(Arc::new(scene.clone()), &cam).unwrap();
         let p = psnr(&gpu, &cpu(&scene, &cam));
         let status = r.render_status();
@@ -612,7 +616,7 @@ fn stroke_move_undo(what: &str, load: isrf::command::Command, stroke: isrf::comm
     };
     let first = draw(&s, "field");
     s.apply(&stroke).unwrap();
-    let mv = Command::Transform {
+    let mv = Edit::Transform {
         object: "mug".into(),
         transform: TransformSpec::translation(Vec3::new(0.3, 0.0, 0.2)),
     };

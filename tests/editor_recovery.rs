@@ -19,7 +19,7 @@ use isrf::app::editor::session::{EditorSession, Request};
 use isrf::app::editor::state::EditorState;
 use isrf::app::editor::EditorCorePlugin;
 use isrf::command::recovery::{restore, state_digest, Inputs, Recorder, RecoveryDoc, StartStep};
-use isrf::command::{Command, Export, Session, TransformSpec};
+use isrf::command::{Edit, Export, Output, Session, TransformSpec};
 use isrf::util::Progress;
 use std::path::{Path, PathBuf};
 use std::process::Command as Process;
@@ -53,7 +53,7 @@ fn failures_keep_the_last_good_state_and_the_recovery_file_follows_every_command
     let rec_path = dir.path().join("rec.json");
     let inputs = Inputs {
         cwd: dir.path().into(),
-        start: vec![StartStep::Apply(load_demo())],
+        start: vec![StartStep::Apply(load_demo().into())],
     };
     let mut es =
         EditorSession::new(Session::new(dir.path(), dir.path())).with_recorder(Recorder::new(rec_path.clone(), inputs));
@@ -70,7 +70,7 @@ fn failures_keep_the_last_good_state_and_the_recovery_file_follows_every_command
     assert_eq!(good.commands, vec![load_demo(), stroke("mug")]);
 
     // A failing command: reported, state and recovery file unchanged.
-    push(&mut app, Request::Apply(Command::Remove { object: "nope".into() }));
+    push(&mut app, Request::Apply(Edit::Remove { object: "nope".into() }.into()));
     assert!(errors(&app).iter().any(|e| e.contains("nope")), "{:?}", errors(&app));
     assert_eq!(recorded(&app).state, good.state);
 
@@ -106,21 +106,24 @@ fn failures_keep_the_last_good_state_and_the_recovery_file_follows_every_command
     let comp = dir.path().join("scene.json");
     push(
         &mut app,
-        Request::Apply(Command::Export(Export::Composition { out: comp.clone() })),
+        Request::Apply(Output::Export(Export::Composition { out: comp.clone() }).into()),
     );
     push(&mut app, Request::Open(comp.clone()));
     push(
         &mut app,
-        Request::Apply(Command::Transform {
-            object: "mug".into(),
-            transform: TransformSpec::translation(glam::Vec3::new(0.2, 0.0, 0.1)),
-        }),
+        Request::Apply(
+            Edit::Transform {
+                object: "mug".into(),
+                transform: TransformSpec::translation(glam::Vec3::new(0.2, 0.0, 0.1)),
+            }
+            .into(),
+        ),
     );
     // The user saves over the composition the session was opened from:
     // the replay opens the copy taken when it was opened, not the new file.
     push(
         &mut app,
-        Request::Apply(Command::Export(Export::Composition { out: comp.clone() })),
+        Request::Apply(Output::Export(Export::Composition { out: comp.clone() }).into()),
     );
     let doc = recorded(&app);
     assert_eq!(doc.opened.as_deref(), Some(comp.as_path()));
@@ -129,7 +132,7 @@ fn failures_keep_the_last_good_state_and_the_recovery_file_follows_every_command
     assert!(doc.files.iter().any(|f| f.path == copy));
     let (s, report) = restore(&doc, &Progress::default()).unwrap();
     assert!(report.identical, "{}", report.message());
-    assert_eq!(s.state.objects.len(), 1);
+    assert_eq!(s.state().objects.len(), 1);
 
     // And the editor's own Restore request reaches that state.
     push(&mut app, Request::Undo);
@@ -153,7 +156,7 @@ fn a_recovery_file_is_offered_restored_or_set_aside_as_asked() {
         recovery_dir: Some(dir.path().join("rec")),
         ..Default::default()
     };
-    let start = vec![Request::Apply(load_demo())];
+    let start = vec![Request::Apply(load_demo().into())];
     // Nothing recorded yet: a recorder, nothing to offer.
     let plan = recovery_plan(&opts(None, false), dir.path(), &start);
     assert!(plan.offer.is_none() && plan.restore.is_none() && plan.notes.is_empty());
@@ -177,7 +180,7 @@ fn a_recovery_file_is_offered_restored_or_set_aside_as_asked() {
     let plan = recovery_plan(&opts(Some(true), true), dir.path(), &start);
     assert_eq!(plan.restore.as_ref(), Some(&offered));
     // Other inputs have their own file.
-    let other = vec![Request::Apply(stroke("pot"))];
+    let other = vec![Request::Apply(stroke("pot").into())];
     assert!(recovery_plan(&opts(None, false), dir.path(), &other).offer.is_none());
     let plan = recovery_plan(&opts(Some(true), false), dir.path(), &other);
     assert!(
@@ -190,7 +193,7 @@ fn a_recovery_file_is_offered_restored_or_set_aside_as_asked() {
     let mut es = EditorSession::new(Session::new(dir.path(), dir.path()))
         .with_recorder(recovery_plan(&opts(None, false), dir.path(), &start).recorder.unwrap());
     es.offer = Some(Box::new(offered.clone()));
-    es.push(Request::Apply(load_demo()));
+    es.push(Request::Apply(load_demo().into()));
     es.accept_offer();
     let app = app_with(es);
     let es = app.world().resource::<EditorSession>();

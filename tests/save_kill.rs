@@ -11,7 +11,7 @@
 
 use isrf::command::composition;
 use isrf::command::recovery::state_digest;
-use isrf::command::{Command, FieldSource, Session, StrokeSource};
+use isrf::command::{Edit, FieldSource, Session, StrokeSource};
 use std::io::BufRead;
 use std::path::Path;
 use std::process::{Command as Process, Stdio};
@@ -25,7 +25,7 @@ const FIELD_RES: usize = 128;
 /// for version 1 the pot (moved) and the mug.
 fn session(dir: &Path, v: usize) -> Session {
     let mut s = Session::new(dir, dir);
-    s.apply(&Command::LoadField {
+    s.apply(&Edit::LoadField {
         name: "t".into(),
         source: FieldSource::Demo {
             scene: "tabletop".into(),
@@ -39,7 +39,7 @@ fn session(dir: &Path, v: usize) -> Session {
     // reading new bitmaps would give its mug the pot's voxels.
     let objects: &[&str] = if v == 0 { &["mug"] } else { &["pot", "mug"] };
     for o in objects {
-        s.apply(&Command::Stroke {
+        s.apply(&Edit::Stroke {
             object: o.to_string(),
             field: None,
             polarity: None,
@@ -48,7 +48,7 @@ fn session(dir: &Path, v: usize) -> Session {
         .unwrap();
     }
     if v == 1 {
-        s.apply(&Command::Transform {
+        s.apply(&Edit::Transform {
             object: "pot".into(),
             transform: isrf::command::TransformSpec::translation(glam::Vec3::new(0.2, 0.0, 0.1)),
         })
@@ -98,7 +98,7 @@ fn a_save_killed_half_way_leaves_the_old_or_the_new_file() {
         .unwrap_or(6);
     let reference = tempfile::tempdir().unwrap();
     let digests: Vec<String> = (0..2)
-        .map(|v| state_digest(&session(reference.path(), v).state))
+        .map(|v| state_digest(session(reference.path(), v).state()))
         .collect();
     assert_ne!(digests[0], digests[1]);
     let field_crcs: Vec<u32> = (0..2)
@@ -135,7 +135,7 @@ fn a_save_killed_half_way_leaves_the_old_or_the_new_file() {
 
         let s = composition::load(&dir.path().join("scene.json"), dir.path())
             .unwrap_or_else(|e| panic!("run {run}: the composition does not open after the kill: {e}"));
-        let d = state_digest(&s.state);
+        let d = state_digest(s.state());
         let v = digests
             .iter()
             .position(|x| *x == d)
@@ -188,9 +188,9 @@ fn cut_save_at(failpoint: &str) -> (usize, Vec<String>) {
     assert!(!o.status.success(), "the child was not cut at {failpoint}");
     let s = composition::load(&dir.path().join("scene.json"), dir.path())
         .unwrap_or_else(|e| panic!("cut at {failpoint}, the composition does not open: {e}"));
-    let d = state_digest(&s.state);
+    let d = state_digest(s.state());
     let v = (0..2)
-        .position(|v| state_digest(&session(dir.path(), v).state) == d)
+        .position(|v| state_digest(session(dir.path(), v).state()) == d)
         .unwrap_or_else(|| panic!("cut at {failpoint}: the composition is neither version (a mix)"));
     let mut names: Vec<String> = std::fs::read_dir(dir.path())
         .unwrap()

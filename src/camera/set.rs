@@ -19,7 +19,7 @@
 
 use super::{Camera, Intrinsics, Ndc};
 use crate::error::{write_atomic, Error, Result};
-use glam::{Affine3A, Mat3, Mat4, Vec3};
+use glam::{Affine3A, Mat3, Vec3};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -103,15 +103,7 @@ pub fn capture_cameras(field: &Path) -> Option<CameraSet> {
         .find_map(|t| CameraSet::load(&t).ok())
 }
 
-pub fn affine_to_rows(a: &Affine3A) -> [[f32; 4]; 4] {
-    let m = Mat4::from(*a).transpose();
-    [
-        m.x_axis.to_array(),
-        m.y_axis.to_array(),
-        m.z_axis.to_array(),
-        m.w_axis.to_array(),
-    ]
-}
+pub use crate::util::affine_to_rows;
 
 impl CameraSet {
     /// Orbit of `n` cameras around `center` at `radius`, `elevation` radians

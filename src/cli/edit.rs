@@ -365,12 +365,12 @@ fn stroke_to_visible(
     note: &str,
 ) -> Result<()> {
     use isrf::app::layers::{build_scene, OverlayMode};
-    use isrf::command::{Command, FieldSource, Session, StrokeSource};
+    use isrf::command::{Edit, FieldSource, Session, StrokeSource};
     use std::sync::Arc;
     use std::time::Instant;
 
     let mut s = Session::default();
-    s.apply(&Command::LoadField {
+    s.apply(&Edit::LoadField {
         name: a.scene.clone(),
         source: FieldSource::Demo {
             scene: a.scene.clone(),
@@ -380,13 +380,14 @@ fn stroke_to_visible(
         transform: None,
     })?;
     // As in the editor after loading: features cached, the field on the GPU.
-    s.state.fields[0].field.feature_cache()?;
+    s.state().fields[0].field.feature_cache()?;
     let mode = OverlayMode {
         tint_selected: true,
         dim_others: false,
     };
     let show = |r: &mut isrf::app::headless::HeadlessRenderer, s: &Session, selected: Option<&str>| -> Result<()> {
-        let (scene, overlay) = build_scene(&s.state, &[], selected, mode);
+        let selected = selected.and_then(|n| s.object(n).ok()).map(|o| o.id);
+        let (scene, overlay) = build_scene(s.state(), &[], selected, mode);
         r.set_scene(Arc::new(scene));
         r.set_overlay(overlay);
         r.wait_drawn()?;
@@ -397,7 +398,7 @@ fn stroke_to_visible(
     show(r, &s, None)?;
     let marches = r.frame_counts().1;
     let t0 = Instant::now();
-    s.apply(&Command::Stroke {
+    s.apply(&Edit::Stroke {
         object: object.to_string(),
         field: None,
         polarity: None,

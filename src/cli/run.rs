@@ -3,8 +3,9 @@
 
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressStyle};
-use isrf::command::script::{load_script, run_script_with, validate_script};
+use isrf::command::script::load_script;
 use isrf::command::FrameRenderer;
+use isrf::command::{run_script_with, validate_script};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]

@@ -10,14 +10,15 @@
 //! document with new bitmaps; the old sidecar goes once the new document
 //! is in place.
 
-use super::session::{FieldEntry, ObjectEntry, Session, State};
-use super::FieldSource;
+use super::session::Session;
+use super::state::{Placement, State};
+use super::{Edit, FieldSource};
 use crate::error::{write_atomic, Error, Result};
 use crate::field::io::{check_format, parse, read_all, read_metadata, serialize, Tensors};
 use crate::field::Bitmap;
-use crate::render::ColorEdit;
 use crate::segment::SegmentParams;
-use glam::{Affine3A, Mat4};
+use crate::util::{affine_from_rows, affine_to_rows};
+use glam::Affine3A;
 use safetensors::tensor::Dtype;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -53,33 +54,24 @@ struct FieldDoc {
     bytes: Option<u64>,
 }
 
+/// An object: its name, its field's name and its placement (flattened:
+/// `transform`, `visible`, `removed`, `duplicate`, `color_edit`, as
+/// documents always had them). Unknown keys are ignored here (serde cannot
+/// refuse them through a flattened struct).
 #[derive(Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
 struct ObjectDoc {
     name: String,
     field: String,
-    transform: [[f32; 4]; 4],
-    removed: bool,
-    visible: bool,
-    duplicate: bool,
-    #[serde(default)]
-    color_edit: Option<ColorEdit>,
+    #[serde(flatten)]
+    placement: Placement,
 }
 
-fn rows(a: &Affine3A) -> [[f32; 4]; 4] {
-    crate::camera::set::affine_to_rows(a)
-}
-
-fn affine(m: &[[f32; 4]; 4], what: &str) -> Result<Affine3A> {
+fn checked(a: Affine3A, what: &str) -> Result<Affine3A> {
     crate::ensure!(
-        m.iter().flatten().all(|v| v.is_finite()),
+        a.to_cols_array().iter().all(|v| v.is_finite()),
         "{what}: transform has a non-finite value"
     );
-    let a = Affine3A::from_mat4(Mat4::from_cols_array_2d(m).transpose());
-    crate::ensure!(
-        a.matrix3.determinant().abs() > 1e-12,
-        "{what}: transform is not invertible"
-    );
+    crate::ensure!(crate::util::invertible(&a), "{what}: transform is not invertible");
     Ok(a)
 }
 
@@ -98,7 +90,7 @@ fn relative_to(p: &Path, dir: &Path) -> PathBuf {
 /// Saves the session's composition to `path` (+
 /// `<stem>.bitmaps.<crc>.safetensors`). Returns the files written.
 pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
-    let st = &session.state;
+    let st = session.state();
     let dir = path
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
@@ -126,8 +118,8 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
         fields.push(FieldDoc {
             name: f.name.clone(),
             source,
-            transform: rows(&f.transform),
-            visible: f.visible,
+            transform: affine_to_rows(&f.placement.transform),
+            visible: f.placement.visible,
             crc32: crc,
             bytes,
         });
@@ -157,16 +149,14 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
     let objects = st
         .objects
         .iter()
-        .map(|o| ObjectDoc {
-            name: o.name.clone(),
-            field: o.field.clone(),
-            transform: rows(&o.transform),
-            removed: o.removed,
-            visible: o.visible,
-            duplicate: o.duplicate,
-            color_edit: o.color_edit,
+        .map(|o| {
+            Ok(ObjectDoc {
+                name: o.name.clone(),
+                field: st.field_of(o)?.name.clone(),
+                placement: o.placement,
+            })
         })
-        .collect();
+        .collect::<Result<_>>()?;
     let doc = Doc {
         format: FORMAT.into(),
         version: VERSION,
@@ -245,7 +235,6 @@ pub fn load(path: &Path, out_dir: &Path) -> Result<Session> {
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."))
         .to_path_buf();
-    let mut session = Session::new(&dir, out_dir);
     let mut st = State {
         params: doc.params,
         background: doc.background,
@@ -271,16 +260,25 @@ pub fn load(path: &Path, out_dir: &Path) -> Result<Session> {
         }
         // Load through the same code path as the LoadField command.
         let mut tmp = Session::new(&dir, out_dir);
-        tmp.apply(&super::Command::LoadField {
+        tmp.apply(&Edit::LoadField {
             name: f.name.clone(),
             source: f.source.clone(),
             transform: None,
         })
         .map_err(ctx)?;
-        let mut entry: FieldEntry = tmp.state.fields.pop().expect("field was loaded");
-        entry.transform = affine(&f.transform, &f.name).map_err(ctx)?;
-        entry.visible = f.visible;
-        st.fields.push(entry);
+        let loaded = &tmp.state().fields[0];
+        let placement = Placement {
+            transform: checked(affine_from_rows(&f.transform), &f.name).map_err(ctx)?,
+            visible: f.visible,
+            ..Default::default()
+        };
+        st.add_field(
+            &f.name,
+            f.source.clone(),
+            loaded.field.clone(),
+            placement,
+            loaded.demo.clone(),
+        );
     }
     let bitmaps_path = dir.join(&doc.bitmaps);
     let (meta, _) = read_metadata(&bitmaps_path)?;
@@ -296,7 +294,7 @@ pub fn load(path: &Path, out_dir: &Path) -> Result<Session> {
     };
     for (i, o) in doc.objects.iter().enumerate() {
         let ctx = |e: Error| Error::bad_file(path, format!("object '{}': {e}", o.name));
-        let field = st.fields.iter().find(|f| f.name == o.field).ok_or_else(|| {
+        let field = st.fields.iter().find(|f| f.name == o.field).cloned().ok_or_else(|| {
             ctx(Error::invalid(format!(
                 "its field '{}' is not in the composition",
                 o.field
@@ -320,20 +318,14 @@ pub fn load(path: &Path, out_dir: &Path) -> Result<Session> {
         }
         let n = r.iter().product::<usize>().div_ceil(64) * 8;
         let mask = Bitmap::from_bytes(r, &t.u8(&key, &[n])?).map_err(ctx)?;
-        if let Some(e) = &o.color_edit {
+        if let Some(e) = &o.placement.color_edit {
             e.validate().map_err(ctx)?;
         }
-        st.objects.push(ObjectEntry {
-            name: o.name.clone(),
-            field: o.field.clone(),
-            mask: Arc::new(mask),
-            transform: affine(&o.transform, &o.name).map_err(ctx)?,
-            removed: o.removed,
-            visible: o.visible,
-            duplicate: o.duplicate,
-            color_edit: o.color_edit,
-        });
+        let placement = Placement {
+            transform: checked(o.placement.transform, &o.name).map_err(ctx)?,
+            ..o.placement
+        };
+        st.add_object(&o.name, field.id, Arc::new(mask), placement);
     }
-    session.set_state(st);
-    Ok(session)
+    Ok(Session::with_state(&dir, out_dir, st))
 }

@@ -1,27 +1,45 @@
-//! The one serialisable [`Command`] type used by the editor and by scripts,
-//! the [`Session`] state it acts on (fields, objects, segmentation
-//! parameters), the edit log with undo/redo, compositions on disk, and the
-//! script runner (`isrf run`).
+//! Every user action, of the editor and of scripts, is a serialisable
+//! [`Command`]: an [`Edit`] (changes the session; undoable, logged) or an
+//! [`Output`] (writes files from it).
 //!
-//! Every user action is a `Command`. `Session::apply` validates and performs
-//! it, pushes the previous state on the undo stack (states share their grids
-//! and bitmaps through `Arc`, so a step costs only what it changed) and
-//! appends the command to the log; "save as script" writes the log.
+//! Modules, each importing only those above it:
+//! - [`state`]: the model: fields and objects with stable ids, their one
+//!   [`Placement`](state::Placement), the composition of a state;
+//! - [`session`]: the state machine: `apply` an edit, undo / redo over a
+//!   bounded history, the edit log; a dry session checks without working;
+//! - [`script`]: scripts on disk (parse, save);
+//! - [`composition`]: compositions on disk (save, open);
+//! - [`output`]: renders and exports from a session, and [`perform`],
+//!   which runs either kind of command;
+//! - [`run`]: `isrf run` (check as a dry run, then execute);
+//! - [`recovery`]: the editor's crash-recovery files.
+//!
+//! `Session::apply` validates and performs an edit and pushes the previous
+//! state on the undo history (states share their grids and bitmaps through
+//! `Arc`, so a step costs only what it changed); "save as script" writes
+//! the log.
 
 pub mod composition;
+pub mod output;
 pub mod recovery;
+pub mod run;
 pub mod script;
 pub mod session;
+pub mod state;
+mod wire;
 
-pub use script::{parse_script, run_script, run_script_with, validate_script, Script};
-pub use session::{FrameRenderer, Session, StepOutput};
+pub use output::{perform, FrameRenderer};
+pub use run::{run_script, run_script_with, validate_script};
+pub use script::{parse_script, Script};
+pub use session::{Session, StepOutput};
 
 use crate::camera::CameraSet;
 use crate::render::ColorEdit;
 use crate::segment::stroke::{CameraDoc, StrokeDoc};
 use crate::segment::{Growth, Polarity};
+use crate::util::{affine_from_rows, invertible};
 use crate::{ensure, Result};
-use glam::{Affine3A, EulerRot, Mat4, Quat, Vec3};
+use glam::{Affine3A, EulerRot, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
@@ -89,19 +107,14 @@ impl TransformSpec {
             self.scale
         );
         if let Some(m) = self.matrix {
-            let a = Affine3A::from_mat4(Mat4::from_cols_array_2d(&m).transpose());
-            let det = a.matrix3.determinant();
-            ensure!(
-                det.abs() > 1e-9 && det.is_finite(),
-                "transform matrix is not invertible"
-            );
+            ensure!(invertible(&affine_from_rows(&m)), "transform matrix is not invertible");
         }
         Ok(())
     }
     /// The affine map, with `default_pivot` used when none is given.
     pub fn affine(&self, default_pivot: Vec3) -> Affine3A {
         if let Some(m) = self.matrix {
-            return Affine3A::from_mat4(Mat4::from_cols_array_2d(&m).transpose());
+            return affine_from_rows(&m);
         }
         let p = self.pivot.map(Vec3::from).unwrap_or(default_pivot);
         let [rx, ry, rz] = self.rotate.map(f32::to_radians);
@@ -216,10 +229,10 @@ fn two() -> usize {
     2
 }
 
-/// Every edit of the editor and of scripts.
+/// A change of the session: undoable, and written to the edit log.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
-pub enum Command {
+pub enum Edit {
     /// Add a field to the composition under `name`, placed by `transform`.
     LoadField {
         name: String,
@@ -305,6 +318,14 @@ pub enum Command {
     Delete {
         target: String,
     },
+}
+
+/// Files written from the session (renders, exports, saves); changes
+/// nothing, so it is neither undone nor logged. New outputs are new
+/// variants here or in [`Export`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum Output {
     /// Render the composition to `<out>/<frame>.png`.
     Render {
         cameras: CameraSource,
@@ -321,31 +342,78 @@ pub enum Command {
     Export(Export),
 }
 
+/// One step of a script or one user action of the editor: an edit or an
+/// output. On disk it is the variant of either (`stroke(...)`,
+/// `render(...)`, `{"export": ...}`), see [`wire`].
+// A handful are queued at a time: boxing the large variants buys nothing.
+#[allow(clippy::large_enum_variant)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum Command {
+    Edit(Edit),
+    Output(Output),
+}
+
+impl From<Edit> for Command {
+    fn from(e: Edit) -> Self {
+        Command::Edit(e)
+    }
+}
+
+impl From<Output> for Command {
+    fn from(o: Output) -> Self {
+        Command::Output(o)
+    }
+}
+
 impl Command {
     /// Short name for messages ("stroke", "load_field", ...).
     pub fn kind(&self) -> &'static str {
         match self {
-            Command::LoadField { .. } => "load_field",
-            Command::TransformField { .. } => "transform_field",
-            Command::SetParams { .. } => "set_params",
-            Command::Stroke { .. } => "stroke",
-            Command::Grow { .. } => "grow",
-            Command::Remove { .. } => "remove",
-            Command::Restore { .. } => "restore",
-            Command::SetVisible { .. } => "set_visible",
-            Command::Transform { .. } => "transform",
-            Command::Duplicate { .. } => "duplicate",
-            Command::Appearance { .. } => "appearance",
-            Command::Rename { .. } => "rename",
-            Command::Delete { .. } => "delete",
-            Command::Render { .. } => "render",
-            Command::Export(_) => "export",
+            Command::Edit(e) => e.kind(),
+            Command::Output(o) => o.kind(),
+        }
+    }
+    pub fn as_edit(&self) -> Option<&Edit> {
+        match self {
+            Command::Edit(e) => Some(e),
+            Command::Output(_) => None,
+        }
+    }
+}
+
+impl Output {
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Output::Render { .. } => "render",
+            Output::Export(_) => "export",
+        }
+    }
+}
+
+impl Edit {
+    /// Short name for messages ("stroke", "load_field", ...).
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Edit::LoadField { .. } => "load_field",
+            Edit::TransformField { .. } => "transform_field",
+            Edit::SetParams { .. } => "set_params",
+            Edit::Stroke { .. } => "stroke",
+            Edit::Grow { .. } => "grow",
+            Edit::Remove { .. } => "remove",
+            Edit::Restore { .. } => "restore",
+            Edit::SetVisible { .. } => "set_visible",
+            Edit::Transform { .. } => "transform",
+            Edit::Duplicate { .. } => "duplicate",
+            Edit::Appearance { .. } => "appearance",
+            Edit::Rename { .. } => "rename",
+            Edit::Delete { .. } => "delete",
         }
     }
     /// For `SetParams`: `current` with the parameters it sets, validated.
     pub fn merged_params(&self, current: &crate::segment::SegmentParams) -> Result<crate::segment::SegmentParams> {
         let mut p = *current;
-        if let Command::SetParams {
+        if let Edit::SetParams {
             rule,
             k,
             theta,
@@ -371,10 +439,6 @@ impl Command {
         }
         p.validate()?;
         Ok(p)
-    }
-    /// Whether it changes the session (as opposed to writing files only).
-    pub fn is_edit(&self) -> bool {
-        !matches!(self, Command::Render { .. } | Command::Export(_))
     }
 }
 

@@ -18,8 +18,9 @@
 //! overwrites a file it did not write, the old one is kept as
 //! `<name>.previous.json`.
 
-use super::session::{Session, State};
-use super::{Command, FieldSource, StrokeSource};
+use super::session::Session;
+use super::state::State;
+use super::{Command, Edit, FieldSource, StrokeSource};
 use crate::error::{write_atomic, Error, Result};
 use crate::util::Progress;
 use serde::{Deserialize, Serialize};
@@ -58,7 +59,7 @@ impl Inputs {
 
     /// The session a fresh start would reach: the last composition opened
     /// and the commands applied after it.
-    fn fresh(&self) -> (Option<&Path>, Vec<&Command>) {
+    fn fresh(&self) -> (Option<&Path>, Vec<&Edit>) {
         let last_open = self.start.iter().rposition(|s| matches!(s, StartStep::Open(_)));
         let opened = last_open.and_then(|i| match &self.start[i] {
             StartStep::Open(p) => Some(p.as_path()),
@@ -68,8 +69,8 @@ impl Inputs {
         let cmds = self.start[after..]
             .iter()
             .filter_map(|s| match s {
-                StartStep::Apply(c) if c.is_edit() => Some(c),
-                _ => None,
+                StartStep::Apply(c) => c.as_edit(),
+                StartStep::Open(_) => None,
             })
             .collect();
         (opened, cmds)
@@ -113,7 +114,7 @@ pub struct RecoveryDoc {
     #[serde(default)]
     pub opened_copy: Option<PathBuf>,
     /// The edits since opening, oldest first (undone ones excluded).
-    pub commands: Vec<Command>,
+    pub commands: Vec<Edit>,
     /// The input files the composition and the commands read.
     pub files: Vec<FileStamp>,
     /// [`state_digest`] of the state the commands produced.
@@ -236,7 +237,7 @@ impl Recorder {
 
     /// The recovery document of `session` as it stands.
     pub fn doc(&mut self, session: &Session) -> Result<RecoveryDoc> {
-        let commands = session.log();
+        let commands = session.log().to_vec();
         let mut files = Vec::new();
         let replayed = self.opened_copy.as_ref().or(self.opened.as_ref());
         for p in input_files(session, replayed.map(PathBuf::as_path), &commands) {
@@ -259,7 +260,7 @@ impl Recorder {
             opened_copy: self.opened_copy.clone(),
             commands,
             files,
-            state: state_digest(&session.state),
+            state: state_digest(session.state()),
             written,
         })
     }
@@ -279,7 +280,7 @@ impl Recorder {
 }
 
 /// The input files a session's composition and commands read, absolute.
-fn input_files(session: &Session, opened: Option<&Path>, commands: &[Command]) -> Vec<PathBuf> {
+fn input_files(session: &Session, opened: Option<&Path>, commands: &[Edit]) -> Vec<PathBuf> {
     let resolve = |p: &Path| {
         if p.is_absolute() {
             p.to_path_buf()
@@ -290,11 +291,11 @@ fn input_files(session: &Session, opened: Option<&Path>, commands: &[Command]) -
     let mut out: Vec<PathBuf> = opened.map(resolve).into_iter().collect();
     for c in commands {
         let named = match c {
-            Command::LoadField {
+            Edit::LoadField {
                 source: FieldSource::File(p),
                 ..
             } => Some(p),
-            Command::Stroke { source, .. } => match source {
+            Edit::Stroke { source, .. } => match source {
                 StrokeSource::File(p) => Some(p),
                 StrokeSource::Scribble { path, .. } => Some(path),
                 StrokeSource::Inline(_) | StrokeSource::Demo { .. } => None,
@@ -359,7 +360,7 @@ pub fn restore(doc: &RecoveryDoc, progress: &Progress) -> Result<(Session, Resto
         }
         applied += 1;
     }
-    let identical = failed.is_none() && state_digest(&session.state) == doc.state;
+    let identical = failed.is_none() && state_digest(session.state()) == doc.state;
     let report = RestoreReport {
         applied,
         total: doc.commands.len(),
@@ -412,21 +413,23 @@ impl Digest {
 /// grids count through their source (a file is checked by its stamp).
 pub fn state_digest(st: &State) -> String {
     let mut d = Digest::new();
+    // Ids are not part of it: they differ between runs; names identify.
     for f in &st.fields {
         d.bytes(f.name.as_bytes());
         d.json(&f.source);
-        d.floats(&f.transform.to_cols_array());
-        d.bytes(&[f.visible as u8]);
+        d.floats(&f.placement.transform.to_cols_array());
+        d.bytes(&[f.placement.visible as u8]);
     }
     d.bytes(b"objects");
     for o in &st.objects {
+        let p = &o.placement;
         d.bytes(o.name.as_bytes());
-        d.bytes(o.field.as_bytes());
+        d.bytes(st.field(o.field).map_or(&b""[..], |f| f.name.as_bytes()));
         d.json(&o.mask.res());
         d.bytes(&o.mask.to_bytes());
-        d.floats(&o.transform.to_cols_array());
-        d.bytes(&[o.removed as u8, o.visible as u8, o.duplicate as u8]);
-        d.json(&o.color_edit);
+        d.floats(&p.transform.to_cols_array());
+        d.bytes(&[p.removed as u8, p.visible as u8, p.duplicate as u8]);
+        d.json(&p.color_edit);
     }
     d.json(&st.params);
     d.floats(&st.background);

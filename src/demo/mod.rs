@@ -84,6 +84,16 @@ pub struct DemoScene {
     pub voxel_parts: Vec<u8>,
 }
 
+/// A demo grid's points per axis must lie in `MIN_RES..=MAX_RES`.
+pub fn check_res(r: usize) -> Result<()> {
+    if !(MIN_RES..=MAX_RES).contains(&r) {
+        return Err(Error::out_of_range(format!(
+            "demo resolution {r} is out of range ({MIN_RES}..={MAX_RES})"
+        )));
+    }
+    Ok(())
+}
+
 /// Builds scene `name` at `res`³ grid points, deterministic for `seed`.
 pub fn build(name: &str, res: usize, seed: u64) -> Result<DemoScene> {
     build_grid(name, [res; 3], seed)
@@ -94,10 +104,7 @@ pub fn build(name: &str, res: usize, seed: u64) -> Result<DemoScene> {
 /// makes large flat grids such as 512 × 512 × 128 for memory tests).
 pub fn build_grid(name: &str, res: [usize; 3], seed: u64) -> Result<DemoScene> {
     for r in res {
-        crate::ensure!(
-            (MIN_RES..=MAX_RES).contains(&r),
-            "demo resolution {r} is out of range ({MIN_RES}..={MAX_RES})"
-        );
+        check_res(r)?;
     }
     let geom = GridGeom::new(bounds(), res);
     // Primitives are made at the finest voxel size.

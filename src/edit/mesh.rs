@@ -328,7 +328,7 @@ pub fn field_mesh(field: &Field, opts: &MeshOptions) -> Result<Mesh> {
 pub fn transform_mesh(mesh: &mut Mesh, t: &Affine3A) -> Result<()> {
     let det = t.matrix3.determinant();
     crate::ensure!(
-        det.is_finite() && det.abs() > 1e-12,
+        crate::util::invertible(t),
         "mesh transform is singular (determinant {det})"
     );
     let normal_matrix = t.matrix3.inverse().transpose();
@@ -351,18 +351,32 @@ pub fn transform_mesh(mesh: &mut Mesh, t: &Affine3A) -> Result<()> {
 /// Writes `mesh` as binary PLY (`.ply`) or binary glTF (`.glb`), chosen by
 /// the extension (case-insensitive), atomically.
 pub fn export_mesh(mesh: &Mesh, path: &Path) -> Result<()> {
-    let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
-    let bytes = match ext.as_deref() {
-        Some("ply") => ply_bytes(mesh)?,
-        Some("glb") => glb_bytes(mesh)?,
-        _ => {
-            return Err(Error::invalid(format!(
-                "{}: unknown mesh format; use a .ply or .glb extension",
-                path.display()
-            )))
-        }
+    let bytes = match MeshFormat::of(path)? {
+        MeshFormat::Ply => ply_bytes(mesh)?,
+        MeshFormat::Glb => glb_bytes(mesh)?,
     };
     crate::error::write_atomic(path, &bytes)
+}
+
+/// The mesh file formats we write.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MeshFormat {
+    Ply,
+    Glb,
+}
+
+impl MeshFormat {
+    /// The format a path's extension names.
+    pub fn of(path: &Path) -> Result<MeshFormat> {
+        match crate::util::extension(path).as_str() {
+            "ply" => Ok(MeshFormat::Ply),
+            "glb" => Ok(MeshFormat::Glb),
+            _ => Err(Error::invalid(format!(
+                "{}: unknown mesh format; use a .ply or .glb extension",
+                path.display()
+            ))),
+        }
+    }
 }
 
 fn check_mesh(mesh: &Mesh) -> Result<()> {

@@ -7,7 +7,7 @@
 //! from anywhere.
 
 use crate::camera::{Camera, CameraSet, Intrinsics};
-use crate::command::session::ObjectEntry;
+use crate::command::state::Placement;
 use crate::command::{composition, script, FieldSource, Session};
 use crate::error::{Error, Result};
 use crate::field::Bitmap;
@@ -319,22 +319,19 @@ fn camera_json(set: &CameraSet) -> Result<Vec<u8>> {
 fn composition_seed(work: &Path, ext: &str) -> Result<Vec<Vec<u8>>> {
     let d = demo()?;
     d.field.save(&work.join("field.safetensors"))?;
-    let mut session = Session::new(work, work.join("out"));
-    session.apply(&crate::command::Command::LoadField {
+    let mut loaded = Session::new(work, work.join("out"));
+    loaded.apply(&crate::command::Edit::LoadField {
         name: "table".into(),
         source: FieldSource::File("field.safetensors".into()),
         transform: None,
     })?;
-    session.state.objects.push(ObjectEntry {
-        name: "mug".into(),
-        field: "table".into(),
-        mask: Arc::new(d.labels.mask(1)),
+    let mut st = loaded.state().clone();
+    let placement = Placement {
         transform: Affine3A::from_translation(Vec3::new(0.1, 0.0, 0.0)),
-        removed: false,
-        visible: true,
-        duplicate: false,
-        color_edit: None,
-    });
+        ..Default::default()
+    };
+    st.add_object("mug", st.fields[0].id, Arc::new(d.labels.mask(1)), placement);
+    let session = Session::with_state(work, work.join("out"), st);
     let doc = work.join(format!("seed.{ext}"));
     composition::save(&session, &doc)?;
     Ok(vec![std::fs::read(&doc).map_err(|e| Error::io(&doc, e))?])
@@ -362,7 +359,7 @@ fn script_seeds(work: &Path, ext: &str) -> Result<Vec<Vec<u8>>> {
 
 fn run_script_check(p: &Path) -> Result<()> {
     let s = script::load_script(p)?;
-    script::validate_script(&s, p.parent().unwrap_or(Path::new(".")))
+    crate::command::validate_script(&s, p.parent().unwrap_or(Path::new(".")))
 }
 
 fn run_colmap(p: &Path) -> Result<()> {

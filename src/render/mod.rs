@@ -297,9 +297,8 @@ fn prepare(scene: &Scene) -> Result<Vec<Prepared<'_>>> {
         .iter()
         .enumerate()
         .map(|(i, l)| {
-            let det = l.to_world.matrix3.determinant();
             ensure!(
-                det.is_finite() && det.abs() > 1e-12,
+                crate::util::invertible(&l.to_world),
                 "layer {i}: its transform is not invertible"
             );
             let mask = match &l.mask {

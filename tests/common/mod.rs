@@ -30,8 +30,8 @@ pub fn write_npy(path: &Path, shape: &[usize], descr: &str, payload: &[u8]) {
 pub const DEMO_RES: usize = 40;
 
 #[allow(dead_code)]
-pub fn load_demo() -> isrf::command::Command {
-    isrf::command::Command::LoadField {
+pub fn load_demo() -> isrf::command::Edit {
+    isrf::command::Edit::LoadField {
         name: "tabletop".into(),
         source: isrf::command::FieldSource::Demo {
             scene: "tabletop".into(),
@@ -44,8 +44,8 @@ pub fn load_demo() -> isrf::command::Command {
 
 /// A stroke from the demo's built-in stroke for `object`.
 #[allow(dead_code)]
-pub fn demo_stroke(object: &str) -> isrf::command::Command {
-    isrf::command::Command::Stroke {
+pub fn demo_stroke(object: &str) -> isrf::command::Edit {
+    isrf::command::Edit::Stroke {
         object: object.into(),
         field: None,
         polarity: None,

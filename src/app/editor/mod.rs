@@ -22,7 +22,8 @@ use crate::app::gpu::{MarchScene, RayMarchCamera, RayMarchPlugin};
 use crate::app::layers::{build_scene, FieldLayer, ObjectLayer, OverlayMode, Preview, Selected, SessionName};
 use crate::camera::Camera as IsrfCamera;
 use crate::command::recovery::{self, Inputs, Recorder, RecoveryDoc, StartStep};
-use crate::command::{Command, FieldSource, Session, StrokeSource};
+use crate::command::state::ObjectId;
+use crate::command::{Edit, FieldSource, Session, StrokeSource};
 use crate::segment::stroke::StrokeDoc;
 use crate::segment::{Polarity, Stroke};
 use crate::{Error, Result};
@@ -72,15 +73,18 @@ pub fn startup_requests(opts: &EditorOptions) -> Result<Vec<Request>> {
     let mut out = Vec::new();
     if opts.files.is_empty() {
         let scene = opts.scene.clone().unwrap_or_else(|| "tabletop".into());
-        out.push(Request::Apply(Command::LoadField {
-            name: scene.clone(),
-            source: FieldSource::Demo {
-                scene,
-                res: if opts.res == 0 { 96 } else { opts.res },
-                seed: 0,
-            },
-            transform: None,
-        }));
+        out.push(Request::Apply(
+            Edit::LoadField {
+                name: scene.clone(),
+                source: FieldSource::Demo {
+                    scene,
+                    res: if opts.res == 0 { 96 } else { opts.res },
+                    seed: 0,
+                },
+                transform: None,
+            }
+            .into(),
+        ));
     }
     let mut used: Vec<String> = Vec::new();
     for p in &opts.files {
@@ -99,11 +103,14 @@ pub fn startup_requests(opts: &EditorOptions) -> Result<Vec<Request>> {
             i += 1;
         }
         used.push(name.clone());
-        out.push(Request::Apply(Command::LoadField {
-            name,
-            source: FieldSource::File(abs),
-            transform: None,
-        }));
+        out.push(Request::Apply(
+            Edit::LoadField {
+                name,
+                source: FieldSource::File(abs),
+                transform: None,
+            }
+            .into(),
+        ));
     }
     if let Some(s) = &opts.script {
         let script = crate::command::script::load_script(s)?;
@@ -302,7 +309,7 @@ pub struct SceneSync {
 struct SceneInputs {
     version: u64,
     previews: Vec<Preview>,
-    selected: Option<String>,
+    selected: Option<ObjectId>,
     mode: OverlayMode,
     background: [f32; 3],
     step_scale: f32,
@@ -342,28 +349,28 @@ fn aim_once(sync: &mut SceneSync, state: &EditorState, es: &EditorSession, cams:
 fn scene_inputs(
     state: &EditorState,
     es: &EditorSession,
-    objects: &Query<(&SessionName, &ObjectLayer, &Transform, Has<Selected>)>,
+    objects: &Query<(&ObjectLayer, &Transform, Has<Selected>)>,
     field_selected: bool,
 ) -> SceneInputs {
     let mut previews = Vec::new();
     let mut selected = None;
-    for (name, o, t, sel) in objects {
+    for (o, t, sel) in objects {
         if sel {
-            selected = Some(name.0.clone());
+            selected = Some(o.id);
         }
-        let Some(entry) = es.state.objects.iter().find(|e| e.name == name.0) else {
+        let Some(entry) = es.state.object(o.id) else {
             continue;
         };
-        let edit = entry.color_edit.unwrap_or_default();
-        if *t != bevy_transform(&entry.transform) || o.color_edit != edit {
+        let edit = entry.placement.color_edit.unwrap_or_default();
+        if *t != bevy_transform(&entry.placement.transform) || o.color_edit() != edit {
             previews.push(Preview {
-                object: name.0.clone(),
+                object: o.id,
                 transform: from_bevy_transform(t),
-                color_edit: o.color_edit,
+                color_edit: o.color_edit(),
             });
         }
     }
-    previews.sort_by(|a, b| a.object.cmp(&b.object));
+    previews.sort_by_key(|p| p.object);
     SceneInputs {
         version: es.version,
         previews,
@@ -383,18 +390,18 @@ pub fn sync_scene(
     mut march: ResMut<MarchScene>,
     state: Res<EditorState>,
     es: Res<EditorSession>,
-    objects: Query<(&SessionName, &ObjectLayer, &Transform, Has<Selected>)>,
-    fields: Query<(&SessionName, &FieldLayer, Has<Selected>)>,
+    objects: Query<(&ObjectLayer, &Transform, Has<Selected>)>,
+    fields: Query<(&FieldLayer, Has<Selected>)>,
     mut cams: EditorCamQuery,
 ) {
     aim_once(&mut sync, &state, &es, &mut cams);
-    let inputs = scene_inputs(&state, &es, &objects, fields.iter().any(|f| f.2));
+    let inputs = scene_inputs(&state, &es, &objects, fields.iter().any(|f| f.1));
     if sync.built_from.as_ref() == Some(&inputs) {
         return;
     }
     let mut st = es.state.clone();
     st.background = inputs.background;
-    let (scene, overlay) = build_scene(&st, &inputs.previews, inputs.selected.as_deref(), inputs.mode);
+    let (scene, overlay) = build_scene(&st, &inputs.previews, inputs.selected, inputs.mode);
     let step = crate::render::Step::default().scaled(inputs.step_scale);
     march.scene = Some(Arc::new(scene));
     march.overlay = overlay;
@@ -433,7 +440,7 @@ pub fn strokes_to_commands(
             joined: true,
         };
         state.pending_select = Some(object.clone());
-        es.apply(Command::Stroke {
+        es.apply(Edit::Stroke {
             object,
             field,
             polarity: Some(s.polarity),
@@ -504,9 +511,9 @@ pub fn keyboard_shortcuts(
     }
     let object = name.0.clone();
     if keys.just_pressed(KeyCode::Delete) || keys.just_pressed(KeyCode::KeyX) {
-        es.apply(Command::Remove { object });
+        es.apply(Edit::Remove { object });
     } else if keys.just_pressed(KeyCode::Equal) || keys.just_pressed(KeyCode::NumpadAdd) {
-        es.apply(Command::Grow {
+        es.apply(Edit::Grow {
             object,
             steps: crate::segment::Growth::Steps(1),
         });
@@ -515,12 +522,12 @@ pub fn keyboard_shortcuts(
 
 /// The object of the last `Stroke` among `requests`.
 fn last_stroked(requests: &[Request]) -> Option<String> {
-    let stroked = |c: &Command| match c {
-        Command::Stroke { object, .. } => Some(object.clone()),
+    let stroked = |c: &Edit| match c {
+        Edit::Stroke { object, .. } => Some(object.clone()),
         _ => None,
     };
     requests.iter().rev().find_map(|r| match r {
-        Request::Apply(c) => stroked(c),
+        Request::Apply(c) => c.as_edit().and_then(stroked),
         Request::Restore(d) => d.commands.iter().rev().find_map(stroked),
         _ => None,
     })

@@ -15,8 +15,8 @@ use crate::app::convert::bevy_transform;
 use crate::app::layers::{FieldLayer, ObjectLayer, SessionName};
 use crate::command::composition;
 use crate::command::recovery::{self, Recorder, RecoveryDoc};
-use crate::command::session::{State, StepOutput};
-use crate::command::{Command, Session};
+use crate::command::state::State;
+use crate::command::{output, Command, Session, StepOutput};
 use crate::util::{Progress, ProgressState};
 use crate::Result;
 use bevy::prelude::*;
@@ -103,7 +103,7 @@ impl EditorSession {
     pub fn new(session: Session) -> Self {
         EditorSession {
             progress: session.progress.clone(),
-            state: session.state.clone(),
+            state: session.state().clone(),
             session: Some(session),
             version: 1,
             queue: VecDeque::new(),
@@ -154,8 +154,8 @@ impl EditorSession {
     pub fn push(&mut self, r: Request) {
         self.queue.push_back(r);
     }
-    pub fn apply(&mut self, c: Command) {
-        self.push(Request::Apply(c));
+    pub fn apply(&mut self, c: impl Into<Command>) {
+        self.push(Request::Apply(c.into()));
     }
     pub fn busy(&self) -> bool {
         self.running.is_some() || !self.queue.is_empty()
@@ -173,8 +173,7 @@ impl EditorSession {
     }
     /// A name not used by any field or object, from `base`.
     pub fn fresh_name(&self, base: &str) -> String {
-        let used =
-            |n: &str| self.state.fields.iter().any(|f| f.name == n) || self.state.objects.iter().any(|o| o.name == n);
+        let used = |n: &str| self.state.name_used(n);
         if !used(base) {
             return base.to_string();
         }
@@ -210,7 +209,7 @@ fn apply_request(
 ) -> (Session, Result<StepOutput>) {
     let progress = session.progress.clone();
     let result = crate::error::catch_panic(r.label().as_str(), || match r {
-        Request::Apply(c) => session.apply(c),
+        Request::Apply(c) => output::perform(&mut session, c, None),
         Request::Undo => Ok(StepOutput {
             message: session
                 .undo()
@@ -259,7 +258,7 @@ fn apply_request(
     }
     // The GPU view draws VM fields through an SH bake: make it here, off the
     // frame loop, rather than in the render world's upload.
-    for f in &session.state.fields {
+    for f in &session.state().fields {
         if let Err(e) = f.field.sh_baked() {
             return (session, Err(e));
         }
@@ -268,7 +267,7 @@ fn apply_request(
 }
 
 /// Collects the finished request and starts the next one.
-pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState>, mut names: Query<&mut SessionName>) {
+pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState>) {
     if let Some(running) = es.running.as_mut() {
         let Some(Outcome {
             session,
@@ -283,14 +282,6 @@ pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState
         es.finished += 1;
         match result {
             Ok(out) => {
-                if let Request::Apply(Command::Rename { target, name }) = &running.request {
-                    // Keep the entity (and the selection) across a rename.
-                    for mut n in &mut names {
-                        if &n.0 == target {
-                            n.0 = name.clone();
-                        }
-                    }
-                }
                 if let Request::Restore(_) = &running.request {
                     // Scripted restores (`--restore --screenshot`) read it in the log.
                     info!("{}", out.message);
@@ -319,7 +310,7 @@ pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState
         es.can_undo = session.can_undo();
         es.can_redo = session.can_redo();
         es.log_len = session.log().len();
-        es.state = session.state.clone();
+        es.state = session.state().clone();
         es.version += 1;
         es.session = Some(session);
     }
@@ -341,32 +332,33 @@ pub fn run_requests(mut es: ResMut<EditorSession>, mut state: ResMut<EditorState
     });
 }
 
-/// Mirrors the session's fields and objects as entities (matched by name),
+/// Mirrors the session's fields and objects as entities (matched by id),
 /// spawning, updating and despawning as needed; collects capture views.
 pub fn sync_entities(
     mut commands: Commands,
     es: Res<EditorSession>,
     mut seen: Local<u64>,
     mut state: ResMut<EditorState>,
-    mut fields: Query<(Entity, &SessionName, &mut FieldLayer, &mut Transform), Without<ObjectLayer>>,
-    mut objects: Query<(Entity, &SessionName, &mut ObjectLayer, &mut Transform), Without<FieldLayer>>,
+    mut fields: FieldEntities,
+    mut objects: ObjectEntities,
 ) {
     if *seen == es.version {
         return;
     }
     *seen = es.version;
     let st = &es.state;
-    let mut field_ids = Vec::new();
+    let mut keep = Vec::new();
     for f in &st.fields {
-        let t = bevy_transform(&f.transform);
         let layer = FieldLayer {
+            id: f.id,
             field: f.field.clone(),
-            hidden: !f.visible,
+            placement: f.placement,
         };
-        let existing = fields.iter_mut().find(|(_, n, _, _)| n.0 == f.name);
-        let e = match existing {
-            Some((e, _, mut fl, mut ft)) => {
-                if !std::sync::Arc::ptr_eq(&fl.field, &layer.field) || fl.hidden != layer.hidden {
+        let t = bevy_transform(&f.placement.transform);
+        let e = match fields.iter_mut().find(|(_, _, l, _)| l.id == f.id) {
+            Some((e, mut n, mut fl, mut ft)) => {
+                relabel(&mut commands, e, &mut n, &f.name);
+                if !std::sync::Arc::ptr_eq(&fl.field, &layer.field) || fl.placement != layer.placement {
                     *fl = layer;
                 }
                 if *ft != t {
@@ -375,81 +367,39 @@ pub fn sync_entities(
                 e
             }
             None => {
-                if let Some(d) = &f.demo {
-                    let views = std::iter::once(("stroke view".to_string(), d.stroke_camera))
-                        .chain(d.cameras.frames.iter().map(|c| (c.name.clone(), c.camera)));
-                    let views: Vec<_> = views
-                        .map(|(n, mut c)| {
-                            c.c2w = f.transform * c.c2w;
-                            (format!("{}: {n}", f.name), c)
-                        })
-                        .collect();
-                    state.capture_cameras.extend(views);
-                } else if let crate::command::FieldSource::File(p) = &f.source {
-                    // The views of the capture a field was trained on:
-                    // `isrf train`'s `<stem>.cameras.json`, else a
-                    // transforms.json beside the file. Forward-facing
-                    // captures' cameras see the field through NDC, which a
-                    // pinhole view cannot show, so only plain ones count.
-                    if let Some(set) = crate::camera::set::capture_cameras(p) {
-                        state
-                            .capture_cameras
-                            .extend(set.frames.into_iter().filter(|c| c.camera.ndc.is_none()).map(|c| {
-                                let mut cam = c.camera;
-                                cam.c2w = f.transform * cam.c2w;
-                                (format!("{}: {}", f.name, c.name), cam)
-                            }));
-                    }
-                }
-                commands
-                    .spawn((Name::new(f.name.clone()), SessionName(f.name.clone()), layer, t))
-                    .id()
+                state.capture_cameras.extend(capture_views(f));
+                spawn_named(&mut commands, &f.name, (layer, t))
             }
         };
-        field_ids.push((f.name.clone(), e));
+        keep.push(e);
     }
-    let mut keep: Vec<Entity> = field_ids.iter().map(|(_, e)| *e).collect();
     for o in &st.objects {
-        let Some(&(_, fe)) = field_ids.iter().find(|(n, _)| *n == o.field) else {
+        let Some(fe) = st.fields.iter().position(|f| f.id == o.field).map(|i| keep[i]) else {
             continue;
         };
-        let t = bevy_transform(&o.transform);
         let layer = ObjectLayer {
+            id: o.id,
             field: fe,
             bitmap: o.mask.clone(),
-            color_edit: o.color_edit.unwrap_or_default(),
-            hidden: !o.visible,
-            removed: o.removed,
-            duplicate: o.duplicate,
+            placement: o.placement,
         };
-        let existing = objects.iter_mut().find(|(_, n, _, _)| n.0 == o.name);
-        let e = match existing {
-            Some((e, _, mut ol, mut ot)) => {
+        let t = bevy_transform(&o.placement.transform);
+        let e = match objects.iter_mut().find(|(_, _, l, _)| l.id == o.id) {
+            Some((e, mut n, mut ol, mut ot)) => {
+                relabel(&mut commands, e, &mut n, &o.name);
                 *ol = layer;
                 if *ot != t {
                     *ot = t;
                 }
                 e
             }
-            None => commands
-                .spawn((Name::new(o.name.clone()), SessionName(o.name.clone()), layer, t))
-                .id(),
+            None => spawn_named(&mut commands, &o.name, (layer, t)),
         };
         keep.push(e);
     }
-    for (e, n, _, _) in fields.iter() {
-        if !keep.contains(&e) {
-            commands.entity(e).despawn();
-        } else {
-            commands.entity(e).insert(Name::new(n.0.clone()));
-        }
-    }
-    for (e, n, _, _) in objects.iter() {
-        if !keep.contains(&e) {
-            commands.entity(e).despawn();
-        } else {
-            commands.entity(e).insert(Name::new(n.0.clone()));
-        }
+    let stale = fields.iter().map(|f| f.0).chain(objects.iter().map(|o| o.0));
+    for e in stale.filter(|e| !keep.contains(e)).collect::<Vec<_>>() {
+        commands.entity(e).despawn();
     }
     // Parameters follow the session (undo of SetParams included).
     if state.params != st.params {
@@ -458,4 +408,70 @@ pub fn sync_entities(
     if state.background != st.background {
         state.background = st.background;
     }
+}
+
+type FieldEntities<'w, 's> = Query<
+    'w,
+    's,
+    (
+        Entity,
+        &'static mut SessionName,
+        &'static mut FieldLayer,
+        &'static mut Transform,
+    ),
+    Without<ObjectLayer>,
+>;
+type ObjectEntities<'w, 's> = Query<
+    'w,
+    's,
+    (
+        Entity,
+        &'static mut SessionName,
+        &'static mut ObjectLayer,
+        &'static mut Transform,
+    ),
+    Without<FieldLayer>,
+>;
+
+fn spawn_named(commands: &mut Commands, name: &str, bundle: impl Bundle) -> Entity {
+    commands
+        .spawn((Name::new(name.to_string()), SessionName(name.to_string()), bundle))
+        .id()
+}
+
+/// A rename changes the labels only: the entity (and the selection) stays.
+fn relabel(commands: &mut Commands, e: Entity, n: &mut Mut<SessionName>, name: &str) {
+    if n.0 != name {
+        n.0 = name.to_string();
+        commands.entity(e).insert(Name::new(name.to_string()));
+    }
+}
+
+/// The views of the capture a field comes from, placed with the field: a
+/// demo's stroke view and orbit; for a file, `isrf train`'s
+/// `<stem>.cameras.json`, else a transforms.json beside the file.
+/// Forward-facing captures' cameras see the field through NDC, which a
+/// pinhole view cannot show, so only plain ones count.
+fn capture_views(f: &crate::command::state::FieldEntry) -> Vec<(String, crate::camera::Camera)> {
+    let views: Vec<(String, crate::camera::Camera)> = if let Some(d) = &f.demo {
+        std::iter::once(("stroke view".to_string(), d.stroke_camera))
+            .chain(d.cameras.frames.iter().map(|c| (c.name.clone(), c.camera)))
+            .collect()
+    } else if let crate::command::FieldSource::File(p) = &f.source {
+        crate::camera::set::capture_cameras(p)
+            .map(|set| set.frames.into_iter().filter(|c| c.camera.ndc.is_none()))
+            .into_iter()
+            .flatten()
+            .map(|c| (c.name, c.camera))
+            .collect()
+    } else {
+        vec![]
+    };
+    views
+        .into_iter()
+        .map(|(n, mut c)| {
+            c.c2w = f.placement.transform * c.c2w;
+            (format!("{}: {n}", f.name), c)
+        })
+        .collect()
 }

@@ -8,7 +8,7 @@ use super::session::EditorSession;
 use super::state::{CurrentStroke, EditorState, GizmoView, Handle, StrokeMsg, Tool, TransformDrag, TransformMode};
 use crate::app::convert::camera_from_bevy;
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
-use crate::command::{Command, TransformSpec};
+use crate::command::{Edit, TransformSpec};
 use crate::segment::Polarity;
 use bevy::camera::Projection;
 use bevy::prelude::*;
@@ -102,9 +102,9 @@ pub fn object_center(obj: &ObjectLayer, obj_t: &Transform, field: &FieldLayer, f
 
 /// The `Transform` command that turns placement `from` into `to`
 /// (world-space change `to · from⁻¹`, given as a row-major matrix).
-pub fn transform_command(object: &str, from: &Transform, to: &Transform) -> Command {
+pub fn transform_command(object: &str, from: &Transform, to: &Transform) -> Edit {
     let w = to.to_matrix() * from.to_matrix().inverse();
-    Command::Transform {
+    Edit::Transform {
         object: object.to_string(),
         transform: TransformSpec {
             matrix: Some(w.transpose().to_cols_array_2d()),
@@ -287,7 +287,7 @@ pub fn gizmo(
     let Ok((field, field_t)) = fields.get(obj.field) else {
         return;
     };
-    if obj.removed || obj.hidden {
+    if obj.placement.removed || !obj.placement.visible {
         return;
     }
     let center = object_center(obj, t, field, field_t);
@@ -475,7 +475,7 @@ pub fn transform_modes(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::command::session::{FieldEntry, ObjectEntry, State};
+    use crate::command::state::{Placement, State};
     use crate::command::{FieldSource, Session};
     use crate::field::{Aabb, Bitmap, FieldBuilder};
     use std::sync::Arc;
@@ -492,35 +492,20 @@ mod tests {
         let mut mask = Bitmap::new(f.res());
         mask.set(62, true);
         let start = glam::Affine3A::from_translation(glam::Vec3::new(0.1, 0.2, 0.3));
-        let mut s = Session::default();
-        s.set_state(State {
-            fields: vec![FieldEntry {
-                name: "f".into(),
-                source: FieldSource::File("x".into()),
-                field: f,
-                transform: glam::Affine3A::IDENTITY,
-                visible: true,
-                demo: None,
-            }],
-            objects: vec![ObjectEntry {
-                name: "o".into(),
-                field: "f".into(),
-                mask: Arc::new(mask),
-                transform: start,
-                removed: false,
-                visible: true,
-                duplicate: false,
-                color_edit: None,
-            }],
-            params: Default::default(),
-            background: [1.0; 3],
-        });
+        let mut st = State::default();
+        let fid = st.add_field("f", FieldSource::File("x".into()), f, Placement::default(), None);
+        let placement = Placement {
+            transform: start,
+            ..Default::default()
+        };
+        st.add_object("o", fid, Arc::new(mask), placement);
+        let mut s = Session::with_state(".", ".", st);
         let from = crate::app::convert::bevy_transform(&start);
         let to = Transform::from_translation(Vec3::new(-0.4, 0.0, 0.5))
             .with_rotation(Quat::from_rotation_y(0.7))
             .with_scale(Vec3::splat(1.3));
         s.apply(&transform_command("o", &from, &to)).unwrap();
-        let got = crate::app::convert::to_bevy_mat4(&s.object("o").unwrap().transform);
+        let got = crate::app::convert::to_bevy_mat4(&s.object("o").unwrap().placement.transform);
         assert!(got.abs_diff_eq(to.to_matrix(), 1e-5), "{got:?} vs {:?}", to.to_matrix());
     }
 

@@ -15,7 +15,7 @@ use super::tools::{self, transform_command};
 use crate::app::convert::{bevy_transform, to_bevy_vec3};
 use crate::app::gpu::SharedStatus;
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
-use crate::command::{CameraSource, Command, Export, FieldSource};
+use crate::command::{CameraSource, Edit, Export, FieldSource, Output};
 use crate::segment::{Growth, GrowthRule, SegmentParams};
 use crate::util::ProgressState;
 use bevy::camera::visibility::RenderLayers;
@@ -177,7 +177,7 @@ pub fn panels(
 
 /// "3 stroke, 1 transform": the kinds of `commands`, counted, in order of
 /// first appearance.
-fn command_summary(commands: &[Command]) -> String {
+fn command_summary(commands: &[Edit]) -> String {
     let mut counts: Vec<(&str, usize)> = Vec::new();
     for c in commands {
         match counts.iter_mut().find(|(k, _)| *k == c.kind()) {
@@ -288,7 +288,7 @@ fn menu_bar(
                 .file_stem()
                 .map_or("field".into(), |s| s.to_string_lossy().into_owned());
             let name = es.fresh_name(&stem);
-            es.apply(Command::LoadField {
+            es.apply(Edit::LoadField {
                 name,
                 source: FieldSource::File(p),
                 transform: None,
@@ -296,7 +296,7 @@ fn menu_bar(
         }
         ui.separator();
         if ui.add_enabled(has, egui::Button::new("Save composition")).clicked() {
-            es.apply(Command::Export(Export::Composition {
+            es.apply(Output::Export(Export::Composition {
                 out: path.clone().unwrap(),
             }));
         }
@@ -304,7 +304,7 @@ fn menu_bar(
             .add_enabled(has, egui::Button::new("Save edit log as script"))
             .clicked()
         {
-            es.apply(Command::Export(Export::Script {
+            es.apply(Output::Export(Export::Script {
                 out: path.clone().unwrap(),
             }));
         }
@@ -341,7 +341,7 @@ fn menu_bar(
             return;
         };
         if ui.button("Mesh (.glb / .ply)").clicked() {
-            es.apply(Command::Export(Export::Mesh {
+            es.apply(Output::Export(Export::Mesh {
                 target: name.clone(),
                 out: out.clone(),
                 iso: None,
@@ -349,26 +349,29 @@ fn menu_bar(
         }
         let Some(fe) = field else { return };
         if ui.button("Object field (.safetensors)").clicked() {
-            es.apply(Command::Export(Export::ObjectField {
+            es.apply(Output::Export(Export::ObjectField {
                 object: name.clone(),
                 out: out.clone(),
                 margin: 2,
             }));
         }
         if ui.button("3D mask bitmap (.safetensors)").clicked() {
-            es.apply(Command::Export(Export::Bitmap {
+            es.apply(Output::Export(Export::Bitmap {
                 object: name.clone(),
                 out: out.clone(),
             }));
         }
-        let field_name = fields.get(fe).map(|f| f.1 .0.clone()).unwrap_or_default();
-        let is_demo = es.state.fields.iter().any(|f| f.name == field_name && f.demo.is_some());
+        let Ok((_, field_name, field_layer)) = fields.get(fe) else {
+            return;
+        };
+        let field_name = field_name.0.clone();
+        let is_demo = es.state.field(field_layer.id).is_some_and(|f| f.demo.is_some());
         if ui
             .add_enabled(is_demo, egui::Button::new("2D masks of the capture views"))
             .on_disabled_hover_text("needs a field with capture cameras (demo scenes)")
             .clicked()
         {
-            es.apply(Command::Export(Export::Masks {
+            es.apply(Output::Export(Export::Masks {
                 object: name,
                 cameras: CameraSource::Demo {
                     field: field_name,
@@ -408,14 +411,17 @@ fn outliner(
                 if ui.selectable_label(sel == Some(fe), format!("▣ {}", fname.0)).clicked() {
                     *select = Some(Some(fe));
                 }
-                if ui.small_button(if f.hidden { "show" } else { "hide" }).clicked() {
-                    es.apply(Command::SetVisible {
+                if ui
+                    .small_button(if f.placement.visible { "hide" } else { "show" })
+                    .clicked()
+                {
+                    es.apply(Edit::SetVisible {
                         target: fname.0.clone(),
-                        visible: f.hidden,
+                        visible: !f.placement.visible,
                     });
                 }
                 if ui.small_button("delete").clicked() {
-                    es.apply(Command::Delete {
+                    es.apply(Edit::Delete {
                         target: fname.0.clone(),
                     });
                 }
@@ -427,7 +433,7 @@ fn outliner(
                     }
                     let name = oname.0.clone();
                     ui.horizontal(|ui| {
-                        let label = if o.removed {
+                        let label = if o.placement.removed {
                             format!("✂ {name} (removed)")
                         } else {
                             format!("● {name} ({} vx)", o.bitmap.count())
@@ -437,26 +443,29 @@ fn outliner(
                         }
                     });
                     ui.horizontal(|ui| {
-                        if ui.small_button(if o.hidden { "show" } else { "hide" }).clicked() {
-                            es.apply(Command::SetVisible {
+                        if ui
+                            .small_button(if o.placement.visible { "hide" } else { "show" })
+                            .clicked()
+                        {
+                            es.apply(Edit::SetVisible {
                                 target: name.clone(),
-                                visible: o.hidden,
+                                visible: !o.placement.visible,
                             });
                         }
-                        if o.removed {
+                        if o.placement.removed {
                             if ui.small_button("restore").clicked() {
-                                es.apply(Command::Restore { object: name.clone() });
+                                es.apply(Edit::Restore { object: name.clone() });
                             }
                         } else if ui
                             .small_button("remove")
                             .on_hover_text("take it out of the scene (leaves a hole)")
                             .clicked()
                         {
-                            es.apply(Command::Remove { object: name.clone() });
+                            es.apply(Edit::Remove { object: name.clone() });
                         }
                         if ui.small_button("duplicate").clicked() {
                             let copy = es.fresh_name(&format!("{name} copy"));
-                            es.apply(Command::Duplicate {
+                            es.apply(Edit::Duplicate {
                                 object: name.clone(),
                                 name: copy,
                                 transform: Some(crate::command::session::translate(glam::Vec3::new(0.15, 0.0, 0.0))),
@@ -467,7 +476,7 @@ fn outliner(
                             .on_hover_text("forget the segmentation (the field is whole again)")
                             .clicked()
                         {
-                            es.apply(Command::Delete { target: name.clone() });
+                            es.apply(Edit::Delete { target: name.clone() });
                             *select = Some(None);
                         }
                     });
@@ -550,7 +559,7 @@ fn tools_panel(
     }
     if commit && state.params != es.state.params {
         let p = state.params;
-        let set = Command::SetParams {
+        let set = Edit::SetParams {
             rule,
             k: Some(p.k),
             theta: Some(p.theta),
@@ -564,7 +573,7 @@ fn tools_panel(
         // Live re-segmentation: take back the last stroke, change the
         // parameters, stroke again (all through the session, so undo works).
         let last = es.session().and_then(|s| s.log().last().cloned());
-        match last.filter(|c| state.live && matches!(c, Command::Stroke { .. })) {
+        match last.filter(|c| state.live && matches!(c, Edit::Stroke { .. })) {
             Some(stroke) => {
                 es.push(Request::Undo);
                 es.apply(set);
@@ -579,7 +588,7 @@ fn tools_panel(
             .add_enabled(object.is_some(), egui::Button::new("Grow one step (+)"))
             .clicked()
         {
-            es.apply(Command::Grow {
+            es.apply(Edit::Grow {
                 object: object.clone().unwrap(),
                 steps: Growth::Steps(1),
             });
@@ -588,7 +597,7 @@ fn tools_panel(
             .add_enabled(object.is_some(), egui::Button::new("Grow to convergence"))
             .clicked()
         {
-            es.apply(Command::Grow {
+            es.apply(Edit::Grow {
                 object: object.clone().unwrap(),
                 steps: Growth::Converge,
             });
@@ -608,7 +617,7 @@ fn name_editor(ui: &mut egui::Ui, state: &mut EditorState, es: &mut EditorSessio
     let r = ui.add(egui::TextEdit::singleline(buf).hint_text("name"));
     let new = buf.trim();
     if r.lost_focus() && new != name && !new.is_empty() {
-        es.apply(Command::Rename {
+        es.apply(Edit::Rename {
             target: name.to_string(),
             name: new.to_string(),
         });
@@ -626,7 +635,7 @@ fn selection_panel(
         return;
     };
     let name = name.0.clone();
-    let Some(entry) = es.state.objects.iter().find(|o| o.name == name).cloned() else {
+    let Some(entry) = es.state.object(obj.id).cloned() else {
         return;
     };
     ui.separator();
@@ -678,12 +687,12 @@ fn selection_panel(
         *t = Transform::IDENTITY;
         commit = true;
     }
-    let placed = bevy_transform(&entry.transform);
+    let placed = bevy_transform(&entry.placement.transform);
     if commit && *t != placed {
         es.apply(transform_command(&name, &placed, &t));
     }
     ui.label("Appearance");
-    let mut c = obj.color_edit;
+    let mut c = obj.color_edit();
     let mut commit = false;
     ui.horizontal(|ui| {
         ui.label("tint");
@@ -696,11 +705,11 @@ fn selection_panel(
         c = Default::default();
         commit = true;
     }
-    if c != obj.color_edit {
-        obj.color_edit = c;
+    if c != obj.color_edit() {
+        obj.placement.color_edit = Some(c);
     }
-    if commit && Some(c).filter(|e| !e.is_identity()) != entry.color_edit {
-        es.apply(Command::Appearance { object: name, edit: c });
+    if commit && Some(c).filter(|e| !e.is_identity()) != entry.placement.color_edit {
+        es.apply(Edit::Appearance { object: name, edit: c });
     }
 }
 

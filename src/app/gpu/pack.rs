@@ -662,9 +662,8 @@ pub fn pack_layers(
     let no_overlay = Overlay::default();
     let mut out = Vec::with_capacity(scene.layers.len());
     for (i, l) in scene.layers.iter().enumerate() {
-        let det = l.to_world.matrix3.determinant();
         ensure!(
-            det.is_finite() && det.abs() > 1e-12,
+            crate::util::invertible(&l.to_world),
             "layer {i}: its transform is not invertible"
         );
         let slot = fields
