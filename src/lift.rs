@@ -13,8 +13,9 @@
 //! stand-in for distillation: a surface point's feature is the mean of the
 //! teacher features of the pixels that see it. Stored points no ray reached
 //! (hidden interiors) take the mean of their reached neighbours, a few
-//! rounds. The result is a sparse 8-bit feature grid at the density
-//! resolution over the field's occupancy.
+//! rounds. The features are then centred on the mean of the reached points
+//! (see `Accumulator::mean_of_seen`). The result is a sparse 8-bit feature
+//! grid at the density resolution over the field's occupancy.
 
 use crate::camera::{Camera, Intrinsics};
 use crate::data::Image;
@@ -136,28 +137,44 @@ pub fn lift(
     let (maps, teacher) = teacher_features(source, &images, &names, dims, cache_dir, &|i, n| {
         progress("teacher", i, n)
     })?;
-    let mut out = sparse::sparsify(field)?;
-    out.source = field.source.clone();
-    let index = out.occupancy.clone().expect("sparsify gives an occupancy");
-    let mut acc = Accumulator::new(index.count(), dims);
-    for (i, v) in views.iter().enumerate() {
-        acc.add_view(&out, &index, &v.camera, &maps, i);
-        progress("lift", i + 1, views.len());
-    }
-    let seen = acc.weight.iter().filter(|&&w| w > 0.0).count();
-    let data = acc.finish(&out.geom(), &index);
-    out.features = Some(Features::Grid(ChannelGrid::sparse(
-        out.geom(),
-        dims,
-        index.clone(),
-        data,
-    )));
+    let cameras: Vec<Camera> = views.iter().map(|v| v.camera).collect();
+    let (out, seen) = lift_maps(field, &cameras, &maps, &|i, n| progress("lift", i, n))?;
     let report = LiftReport {
         teacher,
-        points: index.count(),
+        points: out.occupancy.as_ref().map_or(0, |o| o.count()),
         seen,
     };
     Ok((out, report))
+}
+
+/// The field with features lifted from one feature map per camera (the
+/// teacher's, or any other); also returns how many stored points a ray
+/// reached.
+pub fn lift_maps(
+    field: &Field,
+    cameras: &[Camera],
+    maps: &FeatureMaps,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<(Field, usize)> {
+    crate::ensure!(
+        cameras.len() == maps.maps.len(),
+        "{} cameras but {} feature maps",
+        cameras.len(),
+        maps.maps.len()
+    );
+    let mut out = sparse::sparsify(field)?;
+    out.source = field.source.clone();
+    let index = out.occupancy.clone().expect("sparsify gives an occupancy");
+    let mut acc = Accumulator::new(index.count(), maps.channels);
+    for (i, cam) in cameras.iter().enumerate() {
+        acc.add_view(&out, &index, cam, maps, i);
+        progress(i + 1, cameras.len());
+    }
+    let seen = acc.weight.iter().filter(|&&w| w > 0.0).count();
+    let data = acc.finish(&out.geom(), &index);
+    let grid = ChannelGrid::sparse(out.geom(), maps.channels, index.clone(), data);
+    out.features = Some(Features::Grid(grid));
+    Ok((out, seen))
 }
 
 /// Weighted feature sums per stored grid point.
@@ -257,7 +274,30 @@ impl Accumulator {
                 known[s] = true;
             }
         }
-        self.sum.par_iter().map(|&v| f16::from_f32(v)).collect()
+        let mean = self.mean_of_seen();
+        self.sum
+            .par_chunks(c)
+            .flat_map_iter(|row| row.iter().zip(&mean).map(|(v, m)| f16::from_f32(v - m)))
+            .collect()
+    }
+
+    /// Mean feature of the points some ray reached. The teacher's PCA is
+    /// centred over every pixel of the views, background included, so the
+    /// scene's points share an offset that dominates their unit-length
+    /// comparisons (on a demo scene every pair of objects within 0.4 in
+    /// squared distance, below the seed threshold); subtracting it leaves
+    /// their differences.
+    fn mean_of_seen(&self) -> Vec<f32> {
+        let c = self.channels;
+        let mut mean = vec![0f64; c];
+        let mut n = 0usize;
+        for (row, &w) in self.sum.chunks(c).zip(&self.weight) {
+            if w > 0.0 {
+                mean.iter_mut().zip(row).for_each(|(m, v)| *m += *v as f64);
+                n += 1;
+            }
+        }
+        mean.iter().map(|m| (m / n.max(1) as f64) as f32).collect()
     }
 }
 

@@ -8,16 +8,23 @@
 //! demo's built-in positive stroke with the default parameters and compares
 //! the Gaussians the object exports with the ones on it, by count and by
 //! opacity mass (τ·2π·s₂·s₃, the import's mass).
+//!
+//! Two teachers: the ONNX ViT (what `isrf features` uses), and an oracle,
+//! the demo's own synthetic features rendered from the same orbit cameras
+//! and lifted by the same code: it separates the objects by construction,
+//! so its rows measure import, lifting, stroke selection and export alone.
 
 use crate::demo;
 use crate::error::{Error, Result};
 use crate::field::Field;
-use crate::lift::{lift, orbit_views};
+use crate::lift::{lift, lift_maps, orbit_cameras, orbit_views};
 use crate::render::Scene;
+use crate::render::{render, RenderOptions};
 use crate::segment::{region_from_stroke, SegmentParams};
 use crate::splat::import::{import_file, inside, ImportOptions, ImportReport};
 use crate::splat::ply::{standard_bytes, SplatFile};
 use crate::splat::synth::{from_demo, SynthScene};
+use crate::train::teacher::{FeatureMap, FeatureMaps};
 use crate::train::TeacherSource;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -51,7 +58,8 @@ pub struct SplatBenchConfig {
     pub scenes: Vec<String>,
     pub res: usize,
     pub orbit: usize,
-    pub teacher: TeacherSource,
+    /// The ViT teacher; `None`: the oracle only.
+    pub teacher: Option<TeacherSource>,
     pub dims: usize,
     pub cache_dir: Option<PathBuf>,
     /// Where the .ply and field files go.
@@ -62,6 +70,8 @@ pub struct SplatBenchConfig {
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct SplatRow {
     pub scene: String,
+    /// "oracle" or "vit".
+    pub features: String,
     pub object: String,
     pub true_gaussians: usize,
     pub selected: usize,
@@ -85,27 +95,56 @@ pub fn bench_splats(cfg: &SplatBenchConfig, log: &(dyn Fn(&str) + Sync)) -> Resu
             r.occupied
         ));
         let field = Arc::new(field);
-        let views = orbit_views(&field, cfg.orbit, &|_, _| ())?;
-        let (field, lr) = lift(
-            &field,
-            &views,
-            &cfg.teacher,
-            cfg.dims,
-            cfg.cache_dir.as_deref(),
-            &|_, _, _| (),
-        )?;
-        log(&format!(
-            "{name}: features from {} orbit views ({:.0} % of points seen)",
-            cfg.orbit,
-            100.0 * lr.seen as f64 / lr.points.max(1) as f64
-        ));
-        field.save(&cfg.work.join(format!("{name}.features.safetensors")))?;
-        rows.extend(score_objects(&scene, &synth, &field)?);
+        let oracle = oracle_features(&scene, &field, cfg.orbit)?;
+        rows.extend(score_objects(&scene, &synth, &oracle, "oracle")?);
+        if let Some(teacher) = &cfg.teacher {
+            let views = orbit_views(&field, cfg.orbit, &|_, _| ())?;
+            let (with, lr) = lift(
+                &field,
+                &views,
+                teacher,
+                cfg.dims,
+                cfg.cache_dir.as_deref(),
+                &|_, _, _| (),
+            )?;
+            log(&format!(
+                "{name}: ViT features from {} orbit views ({:.0} % of points seen)",
+                cfg.orbit,
+                100.0 * lr.seen as f64 / lr.points.max(1) as f64
+            ));
+            with.save(&cfg.work.join(format!("{name}.features.safetensors")))?;
+            rows.extend(score_objects(&scene, &synth, &with, "vit")?);
+        }
     }
     Ok(rows)
 }
 
-fn score_objects(scene: &demo::DemoScene, synth: &SynthScene, field: &Field) -> Result<Vec<SplatRow>> {
+/// The imported field with the demo's own features, rendered from the
+/// orbit cameras and lifted.
+fn oracle_features(scene: &demo::DemoScene, field: &Field, orbit: usize) -> Result<Field> {
+    let cams = orbit_cameras(field, orbit)?;
+    let truth = Scene::single(Arc::new(scene.field.clone()));
+    let opts = RenderOptions {
+        features: true,
+        depth: false,
+        ..Default::default()
+    };
+    let mut maps = vec![];
+    for c in &cams {
+        let f = render(&truth, c, &opts)?;
+        maps.push(FeatureMap {
+            width: f.width as usize,
+            height: f.height as usize,
+            image_width: f.width,
+            image_height: f.height,
+            data: f.out.features,
+        });
+    }
+    let maps = FeatureMaps::new(scene.field.feature_channels(), maps)?;
+    Ok(lift_maps(field, &cams, &maps, &|_, _| ())?.0)
+}
+
+fn score_objects(scene: &demo::DemoScene, synth: &SynthScene, field: &Field, features: &str) -> Result<Vec<SplatRow>> {
     let field = Arc::new(field.clone());
     let file = crate::splat::export::source_file(&field)?;
     let cache = field.feature_cache()?;
@@ -121,6 +160,7 @@ fn score_objects(scene: &demo::DemoScene, synth: &SynthScene, field: &Field) -> 
         let truth: Vec<bool> = synth.labels.iter().map(|&l| l == o.label).collect();
         rows.push(SplatRow {
             scene: scene.name.clone(),
+            features: features.to_string(),
             object: o.name.clone(),
             true_gaussians: truth.iter().filter(|&&t| t).count(),
             selected: picked.iter().filter(|&&t| t).count(),

@@ -52,6 +52,8 @@ const MAX_REACH: usize = 32;
 /// Planes per slab of the parallel deposit (≥ [`REACH`]).
 const SLAB: usize = REACH + 2;
 const MAX_ALPHA: f32 = 0.995;
+/// Largest Mahalanobis² of a footprint point (weight e^(−q/2) ≥ 1e-3).
+const MAX_Q: f32 = 13.815_51;
 /// Channels of the colour accumulator: 27 SH2 values and the weight.
 const ACC: usize = 28;
 
@@ -116,7 +118,7 @@ pub fn build_field(file: &SplatFile, opts: &ImportOptions) -> Result<(Field, Imp
     let n = file.len();
     let finite: Vec<u32> = (0..n as u32)
         .into_par_iter()
-        .filter(|&i| file.gaussian(i as usize).is_finite())
+        .filter(|&i| file.is_finite(i as usize))
         .collect();
     crate::ensure!(!finite.is_empty(), "the file holds no Gaussian with finite values");
     let sizes: Vec<f32> = finite
@@ -270,8 +272,10 @@ fn footprint(p: &Prep, res: [usize; 3], out: &mut Vec<(usize, f32)>) {
         for y in lo.y as usize..=hi[1].max(-1.0) as usize {
             for x in lo.x as usize..=hi[0].max(-1.0) as usize {
                 let d = Vec3::new(x as f32, y as f32, z as f32) - p.centre;
-                let w = (-0.5 * d.dot(p.inv * d)).exp();
-                if w > 1e-3 {
+                let q = d.dot(p.inv * d);
+                // Weights below 1e-3 (q > 2 ln 1000) are dropped before the exp.
+                if q < MAX_Q {
+                    let w = (-0.5 * q).exp();
                     sum += w;
                     out.push((x + res[0] * (y + res[1] * z), w));
                 }

@@ -201,6 +201,13 @@ impl SplatFile {
         let p = self.header.layout.pos;
         Vec3::new(f32_at(r, p[0]), f32_at(r, p[1]), f32_at(r, p[2]))
     }
+    /// True when every splat attribute of record `i` is finite (no decoding).
+    pub fn is_finite(&self, i: usize) -> bool {
+        let r = self.record(i);
+        let l = &self.header.layout;
+        let mut offs = l.pos.iter().chain(&l.dc).chain(&l.rest).chain(&l.scale).chain(&l.rot);
+        offs.all(|&o| f32_at(r, o).is_finite()) && f32_at(r, l.opacity).is_finite()
+    }
     pub fn gaussian(&self, i: usize) -> Gaussian {
         decode(self.record(i), &self.header.layout)
     }
