@@ -18,6 +18,7 @@ pub mod eval;
 pub mod field;
 pub mod fuzz;
 pub mod lift;
+pub mod limits;
 pub mod npy;
 pub mod render;
 pub mod segment;

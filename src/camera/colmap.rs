@@ -132,7 +132,7 @@ impl ColmapImage {
 }
 
 /// Largest image side and parameter/record counts we accept before allocating.
-const MAX_SIDE: u64 = 1 << 16;
+const MAX_SIDE: u64 = crate::limits::MAX_IMAGE_SIDE as u64;
 
 /// Reads `cameras.bin` or `cameras.txt` (by extension), keyed by camera id.
 pub fn read_cameras(path: &Path) -> Result<BTreeMap<u32, ColmapCamera>> {

@@ -40,6 +40,10 @@ pub struct Args {
     /// $XDG_STATE_HOME/isrf/recovery, else ~/.local/state/isrf/recovery)
     #[arg(long, value_name = "DIR")]
     pub recovery_dir: Option<PathBuf>,
+    /// How many edits undo reaches back (older steps are dropped, and the
+    /// grids of fields deleted before them freed)
+    #[arg(long, value_name = "N", default_value_t = isrf::command::session::DEFAULT_UNDO_LIMIT)]
+    pub undo_steps: usize,
 }
 
 fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
@@ -48,8 +52,9 @@ fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
         .ok_or_else(|| format!("size '{s}' is not WxH"))?;
     let w: u32 = w.trim().parse().map_err(|_| format!("bad width in '{s}'"))?;
     let h: u32 = h.trim().parse().map_err(|_| format!("bad height in '{s}'"))?;
-    if !(64..=8192).contains(&w) || !(64..=8192).contains(&h) {
-        return Err(format!("window size {w}x{h} is out of range (64..=8192)"));
+    let max = isrf::limits::MAX_TEXTURE_SIDE;
+    if !(64..=max).contains(&w) || !(64..=max).contains(&h) {
+        return Err(format!("window size {w}x{h} is out of range (64..={max})"));
     }
     Ok((w, h))
 }
@@ -71,6 +76,7 @@ pub fn run(a: Args) -> Result<()> {
             _ => None,
         },
         recovery_dir: a.recovery_dir,
+        undo_steps: Some(a.undo_steps),
     })?;
     Ok(())
 }

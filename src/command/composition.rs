@@ -10,6 +10,7 @@
 //! document with new bitmaps; the old sidecar goes once the new document
 //! is in place.
 
+use super::script::Format;
 use super::session::Session;
 use super::state::{Placement, State};
 use super::{Edit, FieldSource};
@@ -166,10 +167,10 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
         fields,
         objects,
     };
-    let text = match path.extension().and_then(|e| e.to_str()) {
-        Some("ron") => ron::ser::to_string_pretty(&doc, ron::ser::PrettyConfig::default())
+    let text = match format_of(path) {
+        Format::Ron => ron::ser::to_string_pretty(&doc, ron::ser::PrettyConfig::default())
             .map_err(|e| Error::invalid(e.to_string()))?,
-        _ => serde_json::to_string_pretty(&doc).map_err(|e| Error::invalid(e.to_string()))?,
+        Format::Json => serde_json::to_string_pretty(&doc).map_err(|e| Error::invalid(e.to_string()))?,
     };
     write_atomic(path, text.as_bytes())?;
     if let Some(old) = old_bitmaps.filter(|o| *o != bitmaps_name) {
@@ -181,11 +182,22 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
 /// The bitmaps file an existing composition document names, if it is one.
 fn sidecar_of(path: &Path) -> Option<PathBuf> {
     let text = std::fs::read_to_string(path).ok()?;
-    let doc: Doc = match path.extension().and_then(|e| e.to_str()) {
-        Some("ron") => ron::from_str(&text).ok()?,
-        _ => serde_json::from_str(&text).ok()?,
-    };
-    Some(doc.bitmaps)
+    parse_doc(&text, path).ok().map(|d| d.bitmaps)
+}
+
+/// A composition is RON when its name says so, JSON otherwise (the rule
+/// of scripts, with JSON for any other extension).
+fn format_of(path: &Path) -> Format {
+    Format::of(path).unwrap_or(Format::Json)
+}
+
+fn parse_doc(text: &str, path: &Path) -> Result<Doc> {
+    match format_of(path) {
+        Format::Ron => ron::from_str(text).map_err(|e| Error::bad_file(path, format!("not a composition: {e}"))),
+        Format::Json => {
+            serde_json::from_str(text).map_err(|e| Error::bad_file(path, format!("not a composition: {e}")))
+        }
+    }
 }
 
 /// Removes the sidecar `old` that the document at `path` named before it
@@ -211,10 +223,7 @@ fn remove_unused_sidecar(dir: &Path, stem: &str, old: &Path, path: &Path) {
 /// document's folder; outputs go to `out_dir`).
 pub fn load(path: &Path, out_dir: &Path) -> Result<Session> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let doc: Doc = match path.extension().and_then(|e| e.to_str()) {
-        Some("ron") => ron::from_str(&text).map_err(|e| Error::bad_file(path, format!("not a composition: {e}")))?,
-        _ => serde_json::from_str(&text).map_err(|e| Error::bad_file(path, format!("not a composition: {e}")))?,
-    };
+    let doc = parse_doc(&text, path)?;
     if doc.format != FORMAT {
         return Err(Error::bad_file(
             path,

@@ -220,6 +220,15 @@ pub enum Export {
     Composition { out: PathBuf },
     /// The edit log as a script.
     Script { out: PathBuf },
+    /// 3D Gaussian splats (`.ply`) of an object as placed, or with
+    /// `complement` its field without it; for a field imported from a
+    /// `.ply`, the file's own records ([`crate::splat::export`]).
+    Splats {
+        object: String,
+        out: PathBuf,
+        #[serde(default)]
+        complement: bool,
+    },
 }
 
 fn one() -> u32 {
@@ -462,10 +471,10 @@ impl CameraSource {
                 *frames >= 1 && *frames <= 10_000,
                 "orbit frames must be 1..=10000, got {frames}"
             );
-            ensure!(
-                *width >= 1 && *height >= 1 && *width <= 8192 && *height <= 8192,
-                "orbit image size {width}x{height} is out of range"
-            );
+            if !crate::limits::image_size_ok(*width, *height) {
+                let msg = format!("orbit image size {width}x{height} is out of range");
+                return Err(crate::Error::out_of_range(msg));
+            }
             ensure!(
                 fov_deg.is_finite() && *fov_deg > 1.0 && *fov_deg < 179.0,
                 "orbit fov {fov_deg} must be in (1, 179) degrees"

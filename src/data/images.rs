@@ -21,9 +21,7 @@ pub struct Image {
     pub alpha: Option<Vec<f32>>,
 }
 
-/// The most pixels an image file may have: 8192² (as RGBA f32, 1 GiB).
-/// Captures are far smaller (LLFF full resolution is 4032×3024).
-pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
+pub use crate::limits::MAX_IMAGE_PIXELS;
 
 /// Decodes a PNG or JPEG after reading its size from the header: the size
 /// must be `expected` (width, height) when given and at most

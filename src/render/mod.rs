@@ -601,12 +601,10 @@ pub fn render_rays(scene: &Scene, rays: &[Ray], opts: &RenderOptions) -> Result<
 /// Renders every pixel of a camera (row-major, pixel centres).
 pub fn render(scene: &Scene, camera: &Camera, opts: &RenderOptions) -> Result<Frame> {
     let k = camera.intrinsics;
-    ensure!(
-        k.width >= 1 && k.height >= 1 && (k.width as u64 * k.height as u64) <= 1 << 26,
-        "image size {}x{} is out of range",
-        k.width,
-        k.height
-    );
+    if !crate::limits::image_size_ok(k.width, k.height) {
+        let msg = format!("image size {}x{} is out of range", k.width, k.height);
+        return Err(crate::Error::out_of_range(msg));
+    }
     let rays: Vec<Ray> = (0..k.height)
         .flat_map(|y| (0..k.width).map(move |x| camera.pixel_ray(x, y)))
         .collect();

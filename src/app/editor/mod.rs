@@ -62,10 +62,13 @@ pub struct EditorOptions {
     pub restore: Option<bool>,
     /// Where recovery files go (default [`recovery::default_dir`]).
     pub recovery_dir: Option<PathBuf>,
+    /// How many edits undo reaches back (default
+    /// [`DEFAULT_UNDO_LIMIT`](crate::command::session::DEFAULT_UNDO_LIMIT)).
+    pub undo_steps: Option<usize>,
 }
 
 fn is_composition(p: &std::path::Path) -> bool {
-    matches!(p.extension().and_then(|e| e.to_str()), Some("ron") | Some("json"))
+    crate::command::script::Format::of(p).is_ok()
 }
 
 /// The requests that open what the options name.
@@ -553,7 +556,11 @@ pub fn run(opts: EditorOptions) -> Result<()> {
         ..default()
     }))
     .add_plugins(bevy::diagnostic::FrameTimeDiagnosticsPlugin::default());
-    let mut es = EditorSession::new(Session::new(cwd.clone(), cwd));
+    let mut session = Session::new(cwd.clone(), cwd);
+    if let Some(n) = opts.undo_steps {
+        session = session.with_undo_limit(n);
+    }
+    let mut es = EditorSession::new(session);
     if let Some(r) = plan.recorder {
         es = es.with_recorder(r);
     }

@@ -223,7 +223,7 @@ fn apply_request(
             ..Default::default()
         }),
         Request::Open(p) => {
-            let mut s = composition::load(p, &session.out_dir)?;
+            let mut s = composition::load(p, &session.out_dir)?.with_undo_limit(session.undo_limit());
             s.progress = progress.clone();
             session = s;
             Ok(StepOutput {
@@ -233,7 +233,7 @@ fn apply_request(
         }
         Request::Restore(doc) => {
             let (s, report) = recovery::restore(doc, &progress)?;
-            session = s;
+            session = s.with_undo_limit(session.undo_limit());
             if !report.identical {
                 warnings.push(report.message());
             }
