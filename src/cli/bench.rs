@@ -60,6 +60,13 @@ pub struct QualityArgs {
     /// Train again instead of using the cached fields.
     #[arg(long)]
     pub retrain: bool,
+    /// Teacher input size, long side in pixels (default: `isrf train`'s).
+    #[arg(long, default_value_t = 0)]
+    pub teacher_size: u32,
+    /// σ of the image-guided upsampling of teacher maps (0: bilinear;
+    /// default: `isrf train`'s).
+    #[arg(long)]
+    pub feature_guide: Option<f32>,
     /// Print the report as JSON instead of tables.
     #[arg(long)]
     pub json: bool,
@@ -292,6 +299,8 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         retrain: a.retrain,
         negatives: a.negatives,
         params: a.params.params()?,
+        teacher_size: a.teacher_size,
+        feature_guide: a.feature_guide,
         ..Default::default()
     };
     if !a.scenes.is_empty() {
@@ -316,8 +325,9 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         println!("{l}");
     }
     println!(
-        "3D IoU: visible voxels of the trained field (1 % opacity across a voxel) labelled by the label grid at their centres \
-         (σ>0: only where the true density is non-zero); 2D: held-out views, opacity > 0.1 (ceiling: the field's own labelled voxels, a perfect selection); \
+        "3D IoU: voxels of the trained field that a training view sees (a sample there takes ≥ 1 % of a pixel's light), \
+         labelled by the label grid at their centres or, in the blur of a surface, one voxel away \
+         (all: every voxel with 1 % opacity across it, seen or not, centre labels); 2D: held-out views, opacity > 0.1 (ceiling: the field's own labelled voxels, a perfect selection); \
          NVOS: stroke + {} negative strokes on the nearest objects, IoU on the held-out view where the object is largest",
         cfg.negatives
     );

@@ -53,6 +53,10 @@ pub struct ParamArgs {
     /// light over one voxel [default: 0.02].
     #[arg(long)]
     pub solid_alpha: Option<f32>,
+    /// Select every look-alike in the field, not only the seeds joined to
+    /// the stroked surface (the paper's global matching; its rule's default).
+    #[arg(long)]
+    pub anywhere: bool,
 }
 
 pub fn parse_growth(s: &str) -> Result<Growth, String> {
@@ -73,6 +77,7 @@ impl ParamArgs {
         p.growth = self.grow.unwrap_or(p.growth);
         p.solid_alpha = self.solid_alpha.unwrap_or(p.solid_alpha);
         p.stroke_keep = self.stroke_keep.unwrap_or(p.stroke_keep);
+        p.connected &= !self.anywhere;
         let g = &mut p.grow;
         g.sigma_f = self.sigma_f.unwrap_or(g.sigma_f);
         g.sigma_s = self.sigma_s.unwrap_or(g.sigma_s);

@@ -159,6 +159,11 @@ impl Field {
         let c = Arc::new(FeatureCache::build(self)?);
         Ok(self.cache.get_or_init(|| c).clone())
     }
+    /// The per-voxel feature cache if [`Field::feature_cache`] has built
+    /// it (never builds it).
+    pub fn cached_features(&self) -> Option<Arc<FeatureCache>> {
+        self.cache.get().cloned()
+    }
     /// The field as the GPU view draws it: VM + MLP appearance baked into
     /// SH ([`bake::vm_to_sh`]), computed once and shared; `None` for other
     /// appearances (drawn as they are). The editor computes it off the

@@ -3,6 +3,7 @@
 //! seed over occupied voxels → bilateral growth → union (positive) or
 //! difference (negative) with the object's 3D bitmap.
 
+pub mod anchor;
 pub mod bitmap_file;
 pub mod dense;
 pub mod grow;
@@ -16,7 +17,7 @@ pub use kmeans::{kmeans, Centroids};
 pub use nnfm::nnfm_seed;
 pub use stroke::{
     load_strokes, load_strokes_in, load_strokes_on, parse_strokes, parse_strokes_on, scribble_stroke, stroke_features,
-    stroke_pixels, Polarity, Stroke, StrokeDoc,
+    stroke_pixels, stroke_samples, Polarity, Stroke, StrokeDoc, StrokeSamples,
 };
 
 use crate::field::{Bitmap, FeatureCache};
@@ -64,6 +65,9 @@ pub struct SegmentParams {
     pub solid_alpha: f32,
     /// Stroke pixels with rendered opacity below this are on empty space.
     pub min_stroke_opacity: f32,
+    /// Keep only the seeds joined to the stroked surface ([`anchor`]);
+    /// false: every look-alike in the field (the paper's global NNFM).
+    pub connected: bool,
     pub kmeans_seed: u64,
     pub kmeans_iters: usize,
 }
@@ -84,6 +88,7 @@ impl Default for SegmentParams {
             stable: stable::StableParams::default(),
             stroke_keep: 0.8,
             min_stroke_opacity: 0.5,
+            connected: true,
             kmeans_seed: 0,
             kmeans_iters: 50,
         }
@@ -99,6 +104,7 @@ impl SegmentParams {
             grow: GrowParams::paper(),
             solid_alpha: 0.0,
             stroke_keep: 1.0,
+            connected: false,
             ..Default::default()
         }
     }
@@ -239,14 +245,17 @@ pub fn region_from_features(
     p: &SegmentParams,
     t: &mut Timings,
 ) -> Result<Bitmap> {
-    segment_features(cache, feats, dim, p, t).map(|(region, _)| region)
+    segment_anchored(cache, feats, dim, &[], p, t).map(|(region, _)| region)
 }
 
-/// [`region_from_features`], also returning the stroke's K-means centres.
-fn segment_features(
+/// [`region_from_features`], also returning the stroke's K-means centres;
+/// with `anchors` (voxels under the stroke), only the seeds joined to them
+/// are kept.
+fn segment_anchored(
     cache: &FeatureCache,
     feats: &[f32],
     dim: usize,
+    anchors: &[u32],
     p: &SegmentParams,
     t: &mut Timings,
 ) -> Result<(Bitmap, Centroids)> {
@@ -264,6 +273,9 @@ fn segment_features(
         _ => p.sigma_floor(cache.geom.spacing().min_element()),
     };
     let mut region = nnfm_seed(cache, &centres, p.theta, floor);
+    if let Some(joined) = anchor::joined_seeds(&region, anchors) {
+        region = joined;
+    }
     t.nnfm_ms = ms_since(t0);
     t.seed_voxels = region.count();
     let t0 = Instant::now();
@@ -420,9 +432,14 @@ fn segment_stroke(
     let mut t = Timings::default();
     let t0 = Instant::now();
     t.stroke_pixels = stroke_pixels(stroke)?.len();
-    let (feats, dim) = stroke_features(scene, stroke, p.min_stroke_opacity)?;
+    let samples = stroke_samples(scene, stroke, p.min_stroke_opacity)?;
+    let anchors = if p.connected {
+        anchor::anchor_voxels(scene, cache, &samples.hits)
+    } else {
+        vec![]
+    };
     t.stroke_features_ms = ms_since(t0);
-    let (region, centres) = segment_features(cache, &feats, dim, p, &mut t)?;
+    let (region, centres) = segment_anchored(cache, &samples.features, samples.channels, &anchors, p, &mut t)?;
     Ok((region, centres, t))
 }
 

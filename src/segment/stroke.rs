@@ -122,11 +122,26 @@ fn clip_segment(a: (f64, f64), b: (f64, f64), bx: [f64; 4]) -> Option<(f64, f64)
 /// (`n × C`). Pixels whose rendered opacity is below `min_opacity` are on
 /// empty space and are dropped; a stroke with none left is an error.
 pub fn stroke_features(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<(Vec<f32>, usize)> {
+    stroke_samples(scene, s, min_opacity).map(|x| (x.features, x.channels))
+}
+
+/// What a stroke's pixels see: their unit features and surface points.
+pub struct StrokeSamples {
+    /// `n × channels` unit features.
+    pub features: Vec<f32>,
+    pub channels: usize,
+    /// The expected hit point of each kept pixel's ray (its depth over its
+    /// opacity, in the space of the stroke camera's rays).
+    pub hits: Vec<glam::Vec3>,
+}
+
+/// [`stroke_features`] with the surface points of the kept pixels.
+pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<StrokeSamples> {
     let px = stroke_pixels(s)?;
     let rays: Vec<_> = px.iter().map(|&(x, y)| s.camera.pixel_ray(x, y)).collect();
     let opts = RenderOptions {
         features: true,
-        depth: false,
+        depth: true,
         ..Default::default()
     };
     let out = render_rays(scene, &rays, &opts)?;
@@ -136,6 +151,7 @@ pub fn stroke_features(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<(V
         "the scene has no semantic features: train or load a field with features to segment"
     );
     let mut feats = Vec::with_capacity(px.len() * c);
+    let mut hits = Vec::with_capacity(px.len());
     for (i, &o) in out.opacity.iter().enumerate() {
         if o < min_opacity {
             continue;
@@ -144,6 +160,7 @@ pub fn stroke_features(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<(V
         let n = f.iter().map(|x| x * x).sum::<f32>().sqrt();
         if n > 1e-12 {
             feats.extend(f.iter().map(|x| x / n));
+            hits.push(rays[i].origin + rays[i].dir * (out.depth[i] / o));
         }
     }
     ensure!(
@@ -152,7 +169,11 @@ pub fn stroke_features(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<(V
         s.object,
         px.len()
     );
-    Ok((feats, c))
+    Ok(StrokeSamples {
+        features: feats,
+        channels: c,
+        hits,
+    })
 }
 
 // ------------------------------------------------------------ JSON documents

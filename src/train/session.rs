@@ -255,7 +255,8 @@ impl Session {
         let idx = self.dataset.indices(Split::Train);
         let images: Vec<&crate::data::Image> = idx.iter().map(|&i| &self.dataset.images[i]).collect();
         let paths: Vec<std::path::PathBuf> = idx.iter().map(|&i| self.dataset.image_paths[i].clone()).collect();
-        let (maps, report) = teacher_features(source, &images, &paths, dims, cache_dir, progress)?;
+        let (mut maps, report) = teacher_features(source, &images, &paths, dims, cache_dir, progress)?;
+        maps.attach_guides(&images)?;
         if let Some(f) = &self.trainer.model.features {
             crate::ensure!(
                 f.channels == maps.channels,

@@ -24,7 +24,15 @@ pub struct FeatureMap {
 pub struct FeatureMaps {
     pub channels: usize,
     pub maps: Vec<FeatureMap>,
+    /// Per map, the mean image colour under each cell (row-major): the
+    /// guide of [`FeatureMaps::sample_guided`]; empty when not attached.
+    pub guides: Vec<Vec<[f32; 3]>>,
 }
+
+/// Joint bilateral upsampling window: cells within this many of the
+/// sample's cell, weighted by a Gaussian of σ = [`GUIDE_SIGMA_CELLS`] cells.
+const GUIDE_RADIUS: isize = 2;
+const GUIDE_SIGMA_CELLS: f32 = 1.0;
 
 impl FeatureMaps {
     pub fn new(channels: usize, maps: Vec<FeatureMap>) -> Result<Self> {
@@ -42,7 +50,11 @@ impl FeatureMaps {
                 "feature map {i} has a non-finite value"
             );
         }
-        Ok(FeatureMaps { channels, maps })
+        Ok(FeatureMaps {
+            channels,
+            maps,
+            guides: vec![],
+        })
     }
 
     /// Bilinear sample of view `view`'s map at the centre of `pixel`
@@ -63,6 +75,103 @@ impl FeatureMaps {
             out[k] = (1.0 - fy) * ((1.0 - fx) * a[k] + fx * b[k]) + fy * ((1.0 - fx) * d[k] + fx * e[k]);
         }
     }
+
+    /// Attaches the guides of [`FeatureMaps::sample_guided`]: for each map,
+    /// the mean colour of its image under each cell (`images` in map order,
+    /// each of the size its map covers).
+    pub fn attach_guides(&mut self, images: &[&Image]) -> Result<()> {
+        ensure!(
+            images.len() == self.maps.len(),
+            "{} guide images for {} feature maps",
+            images.len(),
+            self.maps.len()
+        );
+        self.guides = self
+            .maps
+            .iter()
+            .zip(images)
+            .map(|(m, img)| cell_colours(m, img))
+            .collect::<Result<_>>()?;
+        Ok(())
+    }
+
+    /// The map of view `view` at `pixel`, upsampled with the image as guide
+    /// (joint bilateral upsampling, Kopf et al. 2007): the cells around the
+    /// pixel are weighted by their distance (σ one cell) and by how close
+    /// their mean colour is to the pixel's `colour` (σ `sigma_colour`).
+    /// A ViT's patch token blends everything under its 14×14 patch, so the
+    /// bilinear map blurs an object into its support for a patch or two;
+    /// the colour term takes a pixel's feature from the cells that look
+    /// like it. Falls back to [`FeatureMaps::sample`] without guides, and
+    /// where no cell nearby has a colour like the pixel's.
+    pub fn sample_guided(&self, view: usize, pixel: [u16; 2], colour: [f32; 3], sigma_colour: f32, out: &mut [f32]) {
+        let (Some(guide), true) = (self.guides.get(view), sigma_colour > 0.0) else {
+            return self.sample(view, pixel, out);
+        };
+        let m = &self.maps[view];
+        let c = self.channels;
+        let u = (pixel[0] as f32 + 0.5) / m.image_width as f32 * m.width as f32 - 0.5;
+        let v = (pixel[1] as f32 + 0.5) / m.image_height as f32 * m.height as f32 - 0.5;
+        let (cu, cv) = (u.round() as isize, v.round() as isize);
+        let (inv_s, inv_c) = (
+            0.5 / (GUIDE_SIGMA_CELLS * GUIDE_SIGMA_CELLS),
+            0.5 / (sigma_colour * sigma_colour),
+        );
+        out[..c].fill(0.0);
+        let (mut total, mut spatial) = (0.0f32, 0.0f32);
+        for y in (cv - GUIDE_RADIUS).max(0)..=(cv + GUIDE_RADIUS).min(m.height as isize - 1) {
+            for x in (cu - GUIDE_RADIUS).max(0)..=(cu + GUIDE_RADIUS).min(m.width as isize - 1) {
+                let cell = y as usize * m.width + x as usize;
+                let (dx, dy) = (x as f32 - u, y as f32 - v);
+                let ws = (-(dx * dx + dy * dy) * inv_s).exp();
+                let g = guide[cell];
+                let dc = (0..3).map(|k| (g[k] - colour[k]).powi(2)).sum::<f32>();
+                let w = ws * (-dc * inv_c).exp();
+                spatial += ws;
+                total += w;
+                for (o, f) in out[..c].iter_mut().zip(&m.data[cell * c..(cell + 1) * c]) {
+                    *o += w * f;
+                }
+            }
+        }
+        if total <= 1e-4 * spatial {
+            return self.sample(view, pixel, out);
+        }
+        out[..c].iter_mut().for_each(|o| *o /= total);
+    }
+}
+
+/// The mean colour of `img` under each cell of `map` (pixels assigned to
+/// the cell their centre falls in).
+fn cell_colours(map: &FeatureMap, img: &Image) -> Result<Vec<[f32; 3]>> {
+    ensure!(
+        img.width == map.image_width && img.height == map.image_height,
+        "guide image {}x{} does not match its feature map's {}x{}",
+        img.width,
+        img.height,
+        map.image_width,
+        map.image_height
+    );
+    let mut sum = vec![[0.0f32; 4]; map.width * map.height];
+    for y in 0..img.height {
+        let cy = ((y as f32 + 0.5) / img.height as f32 * map.height as f32) as usize;
+        for x in 0..img.width {
+            let cx = ((x as f32 + 0.5) / img.width as f32 * map.width as f32) as usize;
+            let s = &mut sum[cy.min(map.height - 1) * map.width + cx.min(map.width - 1)];
+            let p = img.pixel(x, y);
+            s[0] += p[0];
+            s[1] += p[1];
+            s[2] += p[2];
+            s[3] += 1.0;
+        }
+    }
+    Ok(sum
+        .into_iter()
+        .map(|s| {
+            let n = s[3].max(1.0);
+            [s[0] / n, s[1] / n, s[2] / n]
+        })
+        .collect())
 }
 
 /// Planar `[C, n]` values (channel-major) to `[n, C]` (channels last).
@@ -421,5 +530,79 @@ mod cache {
             });
         }
         FeatureMaps::new(c, maps)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 4×1 map whose left two cells hold feature 0 and right two feature
+    /// 1, over a 16×4 image that is black left of x = 7 and white from it:
+    /// the colour edge sits inside cell 1, one pixel left of the features'.
+    fn split_map() -> (FeatureMaps, Image) {
+        let map = FeatureMap {
+            width: 4,
+            height: 1,
+            image_width: 16,
+            image_height: 4,
+            data: vec![1.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
+        };
+        let rgb = (0..4)
+            .flat_map(|_| (0..16).flat_map(|x| [if x < 7 { 0.0 } else { 1.0 }; 3]))
+            .collect();
+        let img = Image {
+            width: 16,
+            height: 4,
+            rgb,
+            alpha: None,
+        };
+        (FeatureMaps::new(2, vec![map]).unwrap(), img)
+    }
+
+    #[test]
+    fn guided_samples_take_the_feature_of_cells_coloured_like_the_pixel() {
+        let (mut maps, img) = split_map();
+        maps.attach_guides(&[&img]).unwrap();
+        // Cell colours: black, 3/4 black (pixels 4..8: three black), white, white.
+        assert_eq!(maps.guides[0][1], [0.25; 3]);
+        let mut out = [0.0f32; 2];
+        // Pixel 2 (black) and 13 (white): the far cells' features are
+        // excluded by colour, so each side keeps its own feature.
+        maps.sample_guided(0, [2, 1], img.pixel(2, 1), 0.1, &mut out);
+        assert!(out[0] > 0.99 && out[1] < 0.01, "{out:?}");
+        maps.sample_guided(0, [13, 1], img.pixel(13, 1), 0.1, &mut out);
+        assert!(out[1] > 0.99 && out[0] < 0.01, "{out:?}");
+        // Pixel 7 is white but sits in cell 1 (feature 0): bilinear sampling
+        // blends the features, the guided sample follows the colour.
+        let mut bilinear = [0.0f32; 2];
+        maps.sample(0, [7, 1], &mut bilinear);
+        assert!(bilinear[0] > 0.5, "{bilinear:?}");
+        maps.sample_guided(0, [7, 1], img.pixel(7, 1), 0.1, &mut out);
+        assert!(out[1] > 0.99, "{out:?}");
+        // The weights are normalised: features sum to one here.
+        assert!((out[0] + out[1] - 1.0).abs() < 1e-5);
+        // σ = 0 or no guides: the bilinear sample.
+        maps.sample_guided(0, [7, 1], img.pixel(7, 1), 0.0, &mut out);
+        assert_eq!(out, bilinear);
+    }
+
+    #[test]
+    fn guides_must_match_their_maps() {
+        let (mut maps, img) = split_map();
+        assert!(maps.attach_guides(&[]).is_err());
+        let small = Image {
+            width: 8,
+            height: 4,
+            rgb: vec![0.0; 96],
+            alpha: None,
+        };
+        let e = maps.attach_guides(&[&small]).unwrap_err().to_string();
+        assert!(e.contains("8x4") && e.contains("16x4"), "{e}");
+        let mut out = [0.0f32; 2];
+        let mut bilinear = [0.0f32; 2];
+        maps.sample_guided(0, [7, 1], img.pixel(7, 1), 0.1, &mut out);
+        maps.sample(0, [7, 1], &mut bilinear);
+        assert_eq!(out, bilinear, "no guides attached: bilinear");
     }
 }

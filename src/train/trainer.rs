@@ -74,6 +74,10 @@ pub struct TrainConfig {
     pub feature_res: usize,
     /// λ of L = L_rgb + λ·L_feat.
     pub feature_lambda: f32,
+    /// σ of the colour term when the teacher's maps are upsampled to the
+    /// sampled pixel with the image as guide (`FeatureMaps::sample_guided`);
+    /// 0: plain bilinear sampling.
+    pub feature_guide: f32,
     /// Keep density and colour fixed while distilling features.
     pub freeze_geometry: bool,
     /// Colour model after the first stage: dense SH (the default) or the
@@ -127,6 +131,7 @@ impl Default for TrainConfig {
             feature_iters: 0,
             feature_res: 128,
             feature_lambda: 1e-3,
+            feature_guide: 0.1,
             freeze_geometry: false,
             appearance: AppearanceKind::Sh,
             vm: VmShape {
@@ -183,6 +188,7 @@ impl TrainConfig {
             self.tv_sh,
             self.tv_features,
             self.feature_lambda,
+            self.feature_guide,
             self.lr_vm_grid,
             self.lr_vm_net,
         ];
@@ -473,7 +479,7 @@ impl Trainer {
         let nt = self.grads.len();
         let chunk = batch.len().div_ceil(nt).max(1);
         let (model, rays, teacher) = (&self.model, &self.rays, self.teacher.as_ref());
-        let lambda = self.config.feature_lambda;
+        let (lambda, guide) = (self.config.feature_lambda, self.config.feature_guide);
         let results: Vec<(f64, f64, u64)> = self
             .grads
             .par_iter_mut()
@@ -497,7 +503,8 @@ impl Trainer {
                     se += d.length_squared() as f64;
                     let g = d * (2.0 / (3.0 * nb));
                     if let (true, Some(t)) = (fc > 0, teacher) {
-                        t.sample(rays.view[ri] as usize, rays.pixel[ri], &mut target);
+                        let colour = rays.colors[ri].to_array();
+                        t.sample_guided(rays.view[ri] as usize, rays.pixel[ri], colour, guide, &mut target);
                         for c in 0..fc {
                             let e = s.features[c] - target[c];
                             fe += (e * e) as f64;
