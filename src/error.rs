@@ -105,6 +105,18 @@ macro_rules! ensure {
     };
 }
 
+/// [`ensure!`] for a limit: returns `Error::$kind` (`OutOfRange`,
+/// `DeviceLimit`) when `cond` does not hold, so callers can tell a value
+/// out of range or a device too small from other bad input.
+#[macro_export]
+macro_rules! ensure_within {
+    ($kind:ident, $cond:expr, $($fmt:tt)+) => {
+        if !($cond) {
+            return Err($crate::error::Error::$kind(format!($($fmt)+)));
+        }
+    };
+}
+
 /// Writes `bytes` to `path` atomically: a temporary file in the same
 /// directory, fsync, then rename, so a crash never leaves a half-written file
 /// and never destroys the previous version.

@@ -750,4 +750,26 @@ fn a_script_check_refuses_what_its_run_would() {
         e.to_string(),
         "step 3 (remove): no object named 'mug' (there are: none)"
     );
+
+    let tiny = Edit::LoadField {
+        name: "room".into(),
+        source: FieldSource::Demo {
+            scene: "tabletop".into(),
+            res: 8,
+            seed: 0,
+        },
+        transform: None,
+    };
+    let e = validate_script(
+        &Script {
+            commands: vec![tiny.into()],
+        },
+        dir.path(),
+    )
+    .unwrap_err();
+    assert!(matches!(e.root(), Error::OutOfRange(_)), "{e}");
+    assert_eq!(
+        e.to_string(),
+        "step 1 (load_field): demo resolution 8 is out of range (16..=512)"
+    );
 }

@@ -56,10 +56,11 @@ pub fn headless_plugins() -> bevy::app::PluginGroupBuilder {
 
 impl HeadlessRenderer {
     pub fn new(width: u32, height: u32) -> Result<Self> {
-        if !crate::limits::texture_size_ok(width, height) {
-            let msg = format!("image size {width}x{height} is out of range");
-            return Err(crate::Error::device_limit(msg));
-        }
+        crate::ensure_within!(
+            DeviceLimit,
+            crate::limits::texture_size_ok(width, height),
+            "image size {width}x{height} is out of range"
+        );
         let mut app = App::new();
         app.add_plugins(headless_plugins()).add_plugins(RayMarchPlugin);
         // Finish plugin setup (the render device is created asynchronously).

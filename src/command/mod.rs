@@ -101,7 +101,8 @@ impl TransformSpec {
         all.extend(self.pivot.unwrap_or_default());
         all.extend(self.matrix.iter().flatten().flatten());
         ensure!(all.iter().all(|v| v.is_finite()), "transform has a non-finite value");
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.scale.iter().all(|&s| s.abs() > 1e-6 && s.abs() < 1e6),
             "transform scale {:?} is zero or absurd",
             self.scale
@@ -467,19 +468,23 @@ impl CameraSource {
                 center.iter().all(|v| v.is_finite()) && radius.is_finite() && *radius > 0.0,
                 "orbit centre/radius must be finite, radius > 0"
             );
-            ensure!(
+            crate::ensure_within!(
+                OutOfRange,
                 *frames >= 1 && *frames <= 10_000,
                 "orbit frames must be 1..=10000, got {frames}"
             );
-            if !crate::limits::image_size_ok(*width, *height) {
-                let msg = format!("orbit image size {width}x{height} is out of range");
-                return Err(crate::Error::out_of_range(msg));
-            }
-            ensure!(
+            crate::ensure_within!(
+                OutOfRange,
+                crate::limits::image_size_ok(*width, *height),
+                "orbit image size {width}x{height} is out of range"
+            );
+            crate::ensure_within!(
+                OutOfRange,
                 fov_deg.is_finite() && *fov_deg > 1.0 && *fov_deg < 179.0,
                 "orbit fov {fov_deg} must be in (1, 179) degrees"
             );
-            ensure!(
+            crate::ensure_within!(
+                OutOfRange,
                 elevation_deg.is_finite() && elevation_deg.abs() < 90.0,
                 "orbit elevation must be in (-90, 90) degrees"
             );

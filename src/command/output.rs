@@ -9,7 +9,7 @@ use super::{CameraSource, Command, Export, Output};
 use crate::camera::{Camera, CameraSet};
 use crate::error::{Error, Result};
 use crate::render::{render, save_png, to_rgb8, Probe, RenderOptions, Scene};
-use crate::{ensure, Result as R};
+use crate::Result as R;
 use glam::Vec3;
 use std::sync::Arc;
 
@@ -55,7 +55,8 @@ pub fn check(session: &Session, out: &Output) -> Result<()> {
                 st.object_named(target)?;
             }
             crate::edit::mesh::MeshFormat::of(out)?;
-            ensure!(
+            crate::ensure_within!(
+                OutOfRange,
                 iso.is_none_or(|v| v.is_finite() && v > 0.0),
                 "iso level must be positive"
             );
@@ -67,7 +68,7 @@ pub fn check(session: &Session, out: &Output) -> Result<()> {
 }
 
 fn check_downscale(downscale: u32) -> R<()> {
-    ensure!(downscale >= 1, "downscale must be at least 1");
+    crate::ensure_within!(OutOfRange, downscale >= 1, "downscale must be at least 1");
     Ok(())
 }
 

@@ -86,11 +86,11 @@ pub struct DemoScene {
 
 /// A demo grid's points per axis must lie in `MIN_RES..=MAX_RES`.
 pub fn check_res(r: usize) -> Result<()> {
-    if !(MIN_RES..=MAX_RES).contains(&r) {
-        return Err(Error::out_of_range(format!(
-            "demo resolution {r} is out of range ({MIN_RES}..={MAX_RES})"
-        )));
-    }
+    crate::ensure_within!(
+        OutOfRange,
+        (MIN_RES..=MAX_RES).contains(&r),
+        "demo resolution {r} is out of range ({MIN_RES}..={MAX_RES})"
+    );
     Ok(())
 }
 

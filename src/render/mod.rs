@@ -601,10 +601,13 @@ pub fn render_rays(scene: &Scene, rays: &[Ray], opts: &RenderOptions) -> Result<
 /// Renders every pixel of a camera (row-major, pixel centres).
 pub fn render(scene: &Scene, camera: &Camera, opts: &RenderOptions) -> Result<Frame> {
     let k = camera.intrinsics;
-    if !crate::limits::image_size_ok(k.width, k.height) {
-        let msg = format!("image size {}x{} is out of range", k.width, k.height);
-        return Err(crate::Error::out_of_range(msg));
-    }
+    crate::ensure_within!(
+        OutOfRange,
+        crate::limits::image_size_ok(k.width, k.height),
+        "image size {}x{} is out of range",
+        k.width,
+        k.height
+    );
     let rays: Vec<Ray> = (0..k.height)
         .flat_map(|y| (0..k.width).map(move |x| camera.pixel_ray(x, y)))
         .collect();

@@ -458,7 +458,8 @@ struct GpuSceneCache {
 /// device's binding limit, which would otherwise be a validation error.
 fn storage_buffer(device: &RenderDevice, label: &'static str, data: &[u8]) -> crate::Result<Buffer> {
     let max = binding_limit(device);
-    crate::ensure!(
+    crate::ensure_within!(
+        DeviceLimit,
         data.len() <= max,
         "{label}: {} MB exceed the GPU's {} MB storage binding limit",
         data.len() >> 20,

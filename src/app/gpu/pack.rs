@@ -485,7 +485,8 @@ pub fn indirection(plan: &PoolPlan, max_side: usize) -> Result<Indirection> {
     let w = plan.fields.iter().map(|f| f.dims[0]).max().unwrap_or(1);
     let h = plan.fields.iter().map(|f| f.dims[1]).max().unwrap_or(1);
     let d = plan.fields.iter().map(|f| f.dims[2]).sum::<usize>().max(1);
-    ensure!(
+    crate::ensure_within!(
+        DeviceLimit,
         w.max(h).max(d) <= max_side && plan.layout.bricks.iter().all(|&n| n <= 1 << POOL_BITS),
         "the fields have more bricks ({w}x{h}x{d}) than the GPU view can index"
     );
@@ -538,7 +539,8 @@ pub fn concat_fields(fields: &[&PackedField], plan: &PoolPlan) -> Result<(Vec<Gp
         ];
         infos.push(info);
     }
-    ensure!(
+    crate::ensure_within!(
+        DeviceLimit,
         aux.len() < u32::MAX as usize,
         "the fields are too large for the GPU view"
     );
@@ -710,7 +712,8 @@ pub fn pack_layers(
             highlight: [highlight, 0, 0, 0],
         });
     }
-    ensure!(
+    crate::ensure_within!(
+        DeviceLimit,
         out.len() <= MAX_LAYERS,
         "the GPU view draws at most {MAX_LAYERS} layers at once, this scene has {}",
         out.len()

@@ -342,7 +342,7 @@ pub fn plan(
         }
         stride *= 2;
     }
-    Err(crate::Error::invalid(format!(
+    Err(crate::Error::device_limit(format!(
         "the scene does not fit the GPU even at a coarse level of detail: it needs {} of textures \
          at full detail, the budget is {} and 3D textures hold {max_side} texels per side",
         crate::util::human_bytes(needed),
