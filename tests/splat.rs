@@ -359,3 +359,68 @@ fn one_stroke_selects_an_objects_splats() {
     let iou = |name: &str| rows.iter().find(|r| r.object == name).unwrap().iou_count;
     assert!(iou("table") > 0.85 && iou("pot") > 0.7, "{rows:?}");
 }
+
+/// The script commands `export(splats(object: …, out: …[, complement: true]))`
+/// on an imported field with features: the object's records and the rest
+/// split the source file, byte for byte; a moved object's splats move.
+#[test]
+fn script_exports_an_objects_splats_its_complement_and_moved_splats() {
+    use isrf::splat::synth::from_demo;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let scene = isrf::demo::build("tabletop", 64, 0).unwrap();
+    let synth = from_demo(&scene, 1, 7);
+    let ply = d.join("room.ply");
+    std::fs::write(&ply, standard_bytes(&synth.gaussians, 3).unwrap()).unwrap();
+    let (field, _) = import_file(&ply, &ImportOptions::default()).unwrap();
+    let field = isrf::bench::splats::oracle_features(&scene, &field, 12).unwrap();
+    field.save(&d.join("room.safetensors")).unwrap();
+    let pot: Vec<_> = scene.strokes_json().into_iter().filter(|s| s.object == "pot").collect();
+    std::fs::write(d.join("pot.json"), serde_json::to_vec(&pot).unwrap()).unwrap();
+    let script = r#"[
+        load_field(name: "room", source: file("room.safetensors")),
+        stroke(object: "pot", source: file("pot.json")),
+        export(splats(object: "pot", out: "pot.ply")),
+        export(splats(object: "pot", out: "rest.ply", complement: true)),
+        transform(object: "pot", transform: (translate: (0.0, 0.5, 0.0))),
+        export(splats(object: "pot", out: "moved.ply")),
+    ]"#;
+    std::fs::write(d.join("s.ron"), script).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_isrf"))
+        .arg("run")
+        .arg(d.join("s.ron"))
+        .arg("--out")
+        .arg(d.join("out"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let read = |n: &str| SplatFile::read(&d.join("out").join(n)).unwrap();
+    let (src, pot, rest, moved) = (
+        SplatFile::read(&ply).unwrap(),
+        read("pot.ply"),
+        read("rest.ply"),
+        read("moved.ply"),
+    );
+    assert_eq!(pot.len() + rest.len(), src.len());
+    let label = scene.object("pot").unwrap().label;
+    let on_pot = (0..pot.len())
+        .filter(|&i| scene.labels.at(pot.position(i)) == label)
+        .count();
+    assert!(
+        on_pot as f64 > 0.8 * pot.len() as f64,
+        "{on_pot} of {} on the pot",
+        pot.len()
+    );
+    // The pot's records are the source's, in file order, byte for byte.
+    let mut k = 0;
+    for i in 0..src.len() {
+        if k < pot.len() && src.record(i) == pot.record(k) {
+            k += 1;
+        }
+    }
+    assert_eq!(k, pot.len());
+    assert_eq!(moved.len(), pot.len());
+    for i in 0..pot.len() {
+        assert!((moved.position(i) - pot.position(i) - Vec3::new(0.0, 0.5, 0.0)).length() < 1e-5);
+    }
+}

@@ -121,7 +121,7 @@ pub fn bench_splats(cfg: &SplatBenchConfig, log: &(dyn Fn(&str) + Sync)) -> Resu
 
 /// The imported field with the demo's own features, rendered from the
 /// orbit cameras and lifted.
-fn oracle_features(scene: &demo::DemoScene, field: &Field, orbit: usize) -> Result<Field> {
+pub fn oracle_features(scene: &demo::DemoScene, field: &Field, orbit: usize) -> Result<Field> {
     let cams = orbit_cameras(field, orbit)?;
     let truth = Scene::single(Arc::new(scene.field.clone()));
     let opts = RenderOptions {

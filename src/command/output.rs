@@ -47,9 +47,9 @@ pub fn check(session: &Session, out: &Output) -> Result<()> {
             self::cameras(session, cameras)?;
             mask_probe(st, object).map(drop)
         }
-        Output::Export(Export::ObjectField { object, .. } | Export::Bitmap { object, .. }) => {
-            st.object_named(object).map(drop)
-        }
+        Output::Export(
+            Export::ObjectField { object, .. } | Export::Bitmap { object, .. } | Export::Splats { object, .. },
+        ) => st.object_named(object).map(drop),
         Output::Export(Export::Mesh { target, out, iso }) => {
             if st.field_named(target).is_err() {
                 st.object_named(target)?;
@@ -242,6 +242,17 @@ fn export(session: &Session, e: &Export) -> Result<Vec<std::path::PathBuf>> {
         Export::Composition { out: path } => {
             let p = session.output_path(path);
             files.extend(super::composition::save(session, &p)?);
+        }
+        Export::Splats {
+            object,
+            out: path,
+            complement,
+        } => {
+            let (o, f) = (st.object_named(object)?, st.field_of(st.object_named(object)?)?);
+            let p = session.output_path(path);
+            let at = (o.placement.transform * f.placement.transform, o.placement.color_edit);
+            crate::splat::export::export_object(&f.field, &o.mask, *complement, f.placement.transform, at, &p)?;
+            files.push(p);
         }
         Export::Script { out: path } => {
             let p = session.output_path(path);

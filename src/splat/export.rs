@@ -81,6 +81,31 @@ pub fn export(field: &Field, sel: &Selection, out: &Path) -> Result<ExportReport
     })
 }
 
+/// An object of a composition as splats, where it is now (`object_to_world`,
+/// its colour edit applied), or with `complement` its field without it,
+/// where the field is (`field_to_world`): the script command
+/// `export(splats(object: NAME, out: FILE[, complement: true]))`.
+pub fn export_object(
+    field: &Field,
+    mask: &Bitmap,
+    complement: bool,
+    field_to_world: Affine3A,
+    object: (Affine3A, Option<ColorEdit>),
+    out: &Path,
+) -> Result<ExportReport> {
+    let (to_world, color) = match complement {
+        true => (field_to_world, None),
+        false => object,
+    };
+    let sel = Selection {
+        bits: Some(mask),
+        complement,
+        to_world,
+        color,
+    };
+    export(field, &sel, out)
+}
+
 /// The splat file an imported field came from, checked against the CRC-32
 /// and count it had at import.
 pub fn source_file(field: &Field) -> Result<SplatFile> {

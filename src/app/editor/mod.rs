@@ -13,6 +13,7 @@ pub mod browse;
 pub mod camera;
 pub mod capture;
 pub mod session;
+pub mod splats;
 pub mod state;
 pub mod tools;
 pub mod ui;

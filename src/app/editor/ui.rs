@@ -280,6 +280,12 @@ fn menu_bar(
             es.push(Request::Open(path.clone().unwrap()));
         }
         if ui
+            .add_enabled(has, egui::Button::new("Import 3D Gaussian splats (.ply)"))
+            .clicked()
+        {
+            super::splats::import(state, es, path.as_deref().unwrap());
+        }
+        if ui
             .add_enabled(has, egui::Button::new("Add field file to the composition"))
             .clicked()
         {
@@ -361,6 +367,7 @@ fn menu_bar(
                 out: out.clone(),
             }));
         }
+        super::splats::export_buttons(ui, es, &name, &out);
         let Ok((_, field_name, field_layer)) = fields.get(fe) else {
             return;
         };
