@@ -614,14 +614,18 @@ fn tools_panel(
 
 /// The selected field's or object's name; Enter or leaving the box renames
 /// it through the session (undoable; a taken name shows as an error).
+/// Outside editing the box shows the current label, so a rename by a
+/// script or an undo shows too.
 fn name_editor(ui: &mut egui::Ui, state: &mut EditorState, es: &mut EditorSession, e: Entity, name: &str) {
-    if state.rename.as_ref().map(|r| r.0) != Some(e) {
+    let id = egui::Id::new(("isrf_name", e));
+    let editing = ui.memory(|m| m.has_focus(id));
+    if state.rename.as_ref().map(|r| r.0) != Some(e) || !editing {
         state.rename = Some((e, name.to_string()));
     }
     let Some((_, buf)) = state.rename.as_mut() else {
         return;
     };
-    let r = ui.add(egui::TextEdit::singleline(buf).hint_text("name"));
+    let r = ui.add(egui::TextEdit::singleline(buf).id(id).hint_text("name"));
     let new = buf.trim();
     if r.lost_focus() && new != name && !new.is_empty() {
         es.apply(Edit::Rename {
