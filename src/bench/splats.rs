@@ -156,7 +156,7 @@ fn score_objects(scene: &demo::DemoScene, synth: &SynthScene, field: &Field, fea
             continue;
         };
         let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, &SegmentParams::default())?;
-        let picked = inside(&file, &field.geom(), &region, |p| p);
+        let picked = inside(&file, &field.geom(), &region);
         let truth: Vec<bool> = synth.labels.iter().map(|&l| l == o.label).collect();
         rows.push(SplatRow {
             scene: scene.name.clone(),

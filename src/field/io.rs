@@ -28,6 +28,10 @@
 //! quantisation error (≤ max|channel| / 254 per channel) is far below the
 //! differences it decides on.
 //!
+//! The header's optional `source` names the 3D Gaussian splat file an
+//! imported field came from (path, CRC-32, count; `crate::splat`); readers
+//! that predate it ignore it.
+//!
 //! Reading validates the header, every resolution and the exact byte size the
 //! header implies *before* reading the tensor data, then checks every tensor's
 //! dtype and shape and that all values are finite.

@@ -134,7 +134,7 @@ pub fn select_records(field: &Field, file: &SplatFile, sel: &Selection) -> Vec<b
     let Some(bits) = sel.bits else {
         return vec![true; file.len()];
     };
-    let mut keep = inside(file, &field.geom(), bits, |p| p);
+    let mut keep = inside(file, &field.geom(), bits);
     if sel.complement {
         keep.iter_mut().for_each(|k| *k = !*k);
     }

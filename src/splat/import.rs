@@ -490,19 +490,31 @@ pub(crate) fn neighbours(geom: &GridGeom, v: usize, mut f: impl FnMut(usize)) {
     }
 }
 
-/// Which of the file's Gaussians a bitmap over the field's grid holds: the
-/// grid point nearest to the centre (the voxel cell, centred on a grid
-/// point, that contains it) must be set. Centres outside the grid belong to
-/// no object. A Gaussian on the boundary therefore goes wholly to the side
-/// its centre is on, so an object and its complement split the file exactly.
-pub fn inside(file: &SplatFile, geom: &GridGeom, bits: &Bitmap, to_field: impl Fn(Vec3) -> Vec3 + Sync) -> Vec<bool> {
-    (0..file.len())
-        .into_par_iter()
-        .map(|i| {
-            let p = to_field(file.position(i));
-            p.is_finite() && geom.nearest(p).is_some_and(|[x, y, z]| bits.get(geom.index(x, y, z)))
+/// Which of the file's Gaussians a bitmap over the field's grid holds: a
+/// Gaussian belongs to the object when at least half of its mass, spread
+/// over the grid as the import spreads it, falls on the bitmap's grid
+/// points. A Gaussian on the boundary goes wholly to one side, so an object
+/// and its complement split the file exactly; one straddling an object's
+/// edge (the table under a mug) goes where most of it is, not where its
+/// centre happens to be. Gaussians the field left out (floaters outside the
+/// bounds, non-finite values) belong to no object.
+pub fn inside(file: &SplatFile, geom: &GridGeom, bits: &Bitmap) -> Vec<bool> {
+    let all: Vec<u32> = (0..file.len() as u32).collect();
+    let preps = prepare(file, &all, geom);
+    let mut keep = vec![false; file.len()];
+    let picked: Vec<u32> = preps
+        .par_iter()
+        .map_init(Vec::new, |fp, p| {
+            footprint(p, geom.res, fp);
+            let on: f32 = fp.iter().filter(|(v, _)| bits.get(*v)).map(|(_, w)| w).sum();
+            (!fp.is_empty() && on >= 0.5).then_some(p.index)
         })
-        .collect()
+        .flatten()
+        .collect();
+    for i in picked {
+        keep[i as usize] = true;
+    }
+    keep
 }
 
 #[cfg(test)]
