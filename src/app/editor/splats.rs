@@ -6,7 +6,7 @@ use super::state::EditorState;
 use crate::command::{Edit, Export, FieldSource, Output};
 use crate::splat::{import_file, ImportOptions};
 use bevy_egui::egui;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Imports a splat `.ply` into `<file>.safetensors` beside it and adds that
 /// field to the composition (the script records the field file).
@@ -36,7 +36,7 @@ pub fn import(state: &mut EditorState, es: &mut EditorSession, ply: &Path) {
 }
 
 /// Export → the object's splats, or the scene without it, to `out`.
-pub fn export_buttons(ui: &mut egui::Ui, es: &mut EditorSession, object: &str, out: &PathBuf) {
+pub fn export_buttons(ui: &mut egui::Ui, es: &mut EditorSession, object: &str, out: &Path) {
     for (label, complement) in [
         ("Splats of the object (.ply)", false),
         ("Splats of the scene without it (.ply)", true),
@@ -44,7 +44,7 @@ pub fn export_buttons(ui: &mut egui::Ui, es: &mut EditorSession, object: &str, o
         if ui.button(label).clicked() {
             es.apply(Output::Export(Export::Splats {
                 object: object.to_string(),
-                out: out.clone(),
+                out: out.to_path_buf(),
                 complement,
             }));
         }
