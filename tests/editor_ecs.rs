@@ -353,3 +353,39 @@ fn a_mouse_drag_on_a_gizmo_ring_turns_the_object_about_that_axis() {
     let shown = app.world().get::<Transform>(entity).unwrap().to_matrix();
     assert!(placed.abs_diff_eq(shown, 1e-4), "{placed:?} vs {shown:?}");
 }
+
+/// Names are labels: a rename (and its undo) keeps the entity, its
+/// selection and its placement preview, and only relabels it.
+#[test]
+fn a_rename_relabels_the_same_entity() {
+    let mut app = app();
+    paint(&mut app, "mug");
+    let (entity, id, old) = {
+        let mut q = app.world_mut().query::<(Entity, &SessionName, &ObjectLayer)>();
+        let (e, n, o) = q.single(app.world()).unwrap();
+        (e, o.id, n.0.clone())
+    };
+    let rename = |app: &mut App, from: &str, to: &str| {
+        let r = Edit::Rename {
+            target: from.into(),
+            name: to.into(),
+        };
+        app.world_mut().resource_mut::<EditorSession>().apply(r);
+        settle(app);
+    };
+    let label = |app: &mut App| {
+        let w = app.world();
+        let layer = w.get::<ObjectLayer>(entity).expect("the same entity");
+        assert_eq!(layer.id, id);
+        assert!(w.get::<Selected>(entity).is_some(), "still selected");
+        let (n, name) = (w.get::<SessionName>(entity).unwrap(), w.get::<Name>(entity).unwrap());
+        assert_eq!(n.0, name.as_str());
+        n.0.clone()
+    };
+    rename(&mut app, &old, "cup");
+    assert_eq!(label(&mut app), "cup");
+    app.world_mut().resource_mut::<EditorSession>().push(Request::Undo);
+    settle(&mut app);
+    assert_eq!(label(&mut app), old);
+    assert_eq!(objects(&mut app).len(), 1);
+}

@@ -182,7 +182,7 @@ pub fn read_images(path: &Path) -> Result<Vec<ColmapImage>> {
 }
 
 fn is_text(path: &Path) -> bool {
-    path.extension().is_some_and(|e| e.eq_ignore_ascii_case("txt"))
+    crate::util::extension(path) == "txt"
 }
 
 /// `cameras` and `images` files of the model in `dir`: `dir` itself, or

@@ -152,8 +152,7 @@ pub fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut files = Vec::new();
     for entry in entries {
         let path = entry.map_err(|e| Error::io(dir, e))?.path();
-        let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
-        if matches!(ext.as_deref(), Some("png" | "jpg" | "jpeg")) && path.is_file() {
+        if matches!(crate::util::extension(&path).as_str(), "png" | "jpg" | "jpeg") && path.is_file() {
             files.push(path);
         }
     }
