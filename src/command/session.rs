@@ -15,8 +15,8 @@ use crate::error::{Error, Result};
 use crate::field::{Aabb, Bitmap, Field, FieldBuilder};
 use crate::render::{Layer, Scene};
 use crate::segment::{
-    load_strokes_in, mask_bound, scribble_stroke, Grower, Growth, MaskBuilder, Polarity, Stroke, Timings,
-    MAX_GROW_STEPS,
+    load_strokes_in, mask_bound, scribble_stroke, Grower, Growth, MaskBuilder, Polarity, SegmentParams, Stroke,
+    Timings, MAX_GROW_STEPS,
 };
 use crate::util::Progress;
 use glam::{Affine3A, Vec2, Vec3};
@@ -360,10 +360,7 @@ impl Session {
             st.check_new_name(object)?;
         }
         let strokes = self.strokes_of(&f, object, source)?;
-        let start = existing
-            .as_ref()
-            .map_or_else(|| Bitmap::new(f.field.res()), |o| (*o.mask).clone());
-        let (mask, total) = self.segment(&f, object, existing.is_some(), start, &strokes, polarity, st)?;
+        let (mask, total) = self.segment(&f, object, existing.as_ref(), &strokes, polarity, &st.params)?;
         let msg = format!(
             "'{object}': {} voxels (last stroke {:.0} ms)",
             mask.count(),
@@ -382,20 +379,21 @@ impl Session {
         })
     }
 
-    /// Applies `strokes` to `mask` in order (a dry session only checks that
-    /// a negative stroke has something to subtract from).
-    #[allow(clippy::too_many_arguments)]
+    /// Applies `strokes` in order to the mask of `existing` (or an empty
+    /// one); a dry session only checks that a negative stroke has something
+    /// to subtract from.
     fn segment(
         &self,
         f: &FieldEntry,
         object: &str,
-        exists: bool,
-        mask: Bitmap,
+        existing: Option<&ObjectEntry>,
         strokes: &[Stroke],
         polarity: Option<Polarity>,
-        st: &State,
+        params: &SegmentParams,
     ) -> Result<(Bitmap, Timings)> {
-        let mut builder = MaskBuilder::new(mask);
+        let exists = existing.is_some();
+        let start = existing.map_or_else(|| Bitmap::new(f.field.res()), |o| (*o.mask).clone());
+        let mut builder = MaskBuilder::new(start);
         let mut total = Timings::default();
         let mut made = exists;
         let cache = if self.dry {
@@ -421,7 +419,7 @@ impl Session {
             }
             made |= pol == Polarity::Positive;
             if let Some(cache) = &cache {
-                total = builder.stroke(&scene, cache, s, pol, &st.params)?;
+                total = builder.stroke(&scene, cache, s, pol, params)?;
             }
         }
         Ok((builder.mask, total))
