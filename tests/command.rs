@@ -671,6 +671,7 @@ fn undo_keeps_a_bounded_history_and_frees_deleted_fields() {
         growth: None,
         theta_grow: None,
         solid_alpha: None,
+        connected: None,
     };
     s.apply(&k(4)).unwrap();
     s.apply(&k(5)).unwrap();
@@ -772,4 +773,21 @@ fn a_script_check_refuses_what_its_run_would() {
         e.to_string(),
         "step 1 (load_field): demo resolution 8 is out of range (16..=512)"
     );
+}
+
+#[test]
+fn set_params_switches_joined_seeds_and_undo_restores_them() {
+    let mut s = Session::default();
+    assert!(
+        s.state().params.connected,
+        "the default keeps the seeds joined to the stroke"
+    );
+    let script = parse_script("[set_params(connected: false, theta: 0.25)]", Format::Ron).unwrap();
+    for c in &script.commands {
+        isrf::command::output::perform(&mut s, c, None).unwrap();
+    }
+    assert!(!s.state().params.connected);
+    assert_eq!(s.state().params.theta, 0.25);
+    s.undo();
+    assert!(s.state().params.connected);
 }

@@ -167,6 +167,7 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
         growth: Some(Growth::Steps(0)),
         theta_grow: None,
         solid_alpha: None,
+        connected: None,
     });
     paint(&mut app, "mug");
     let (name, before, _) = objects(&mut app)[0].clone();

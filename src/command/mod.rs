@@ -276,6 +276,10 @@ pub enum Edit {
         theta_grow: Option<f32>,
         #[serde(default)]
         solid_alpha: Option<f32>,
+        /// Only the seeds joined to the stroked surface (false: every
+        /// look-alike in the field, as `isrf segment --anywhere`).
+        #[serde(default)]
+        connected: Option<bool>,
     },
     /// A brush stroke for `object` (created on first positive stroke) on
     /// `field` (default: the object's field, else the first field).
@@ -433,6 +437,7 @@ impl Edit {
             growth,
             theta_grow,
             solid_alpha,
+            connected,
         } = self
         {
             if let Some(r) = rule {
@@ -440,6 +445,7 @@ impl Edit {
             }
             p.grow.theta_grow = theta_grow.unwrap_or(p.grow.theta_grow);
             p.solid_alpha = solid_alpha.unwrap_or(p.solid_alpha);
+            p.connected = connected.unwrap_or(p.connected);
             p.k = k.unwrap_or(p.k);
             p.theta = theta.unwrap_or(p.theta);
             p.grow.sigma_f = sigma_f.unwrap_or(p.grow.sigma_f);

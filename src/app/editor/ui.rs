@@ -558,6 +558,10 @@ fn tools_panel(
         ),
     );
     commit |= committed(&ui.add(egui::Slider::new(&mut p.grow.tau, 0.0..=0.99).text("τ")));
+    commit |= ui
+        .checkbox(&mut p.connected, "only what the stroke touches")
+        .on_hover_text("Keep the matches joined to the stroked surface; off: every look-alike in the field")
+        .changed();
     ui.checkbox(&mut state.live, "live: redo the last stroke with new values");
     if let Some(r) = rule {
         // A rule change resets the sliders to that rule's defaults.
@@ -576,6 +580,7 @@ fn tools_panel(
             growth: None,
             theta_grow: Some(p.grow.theta_grow),
             solid_alpha: Some(p.solid_alpha),
+            connected: Some(p.connected),
         };
         // Live re-segmentation: take back the last stroke, change the
         // parameters, stroke again (all through the session, so undo works).
