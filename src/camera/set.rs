@@ -293,7 +293,7 @@ impl CameraSet {
 
 /// A pose from the rows of a 3×4 or 4×4 matrix; rejects non-finite numbers,
 /// a bottom row other than [0 0 0 1], scale, shear and reflections.
-fn rigid_from_rows(rows: &[Vec<f64>]) -> std::result::Result<Affine3A, String> {
+pub(crate) fn rigid_from_rows(rows: &[Vec<f64>]) -> std::result::Result<Affine3A, String> {
     if !(rows.len() == 3 || rows.len() == 4) || rows.iter().any(|r| r.len() != 4) {
         let shape: Vec<usize> = rows.iter().map(Vec::len).collect();
         return Err(format!(
@@ -349,37 +349,74 @@ fn frame_intrinsics(
         (Some(w), Some(h)) => (side(w, "w")?, side(h, "h")?),
         _ => image_size(dir, name).or_else(|e| fallback_size.ok_or(e))?,
     };
-    let from_angle = |angle: Option<f64>, side: u32| angle.map(|a| 0.5 * side as f64 / (0.5 * a).tan());
-    let fx = own
-        .fl_x
-        .or(top.fl_x)
-        .or_else(|| from_angle(json.camera_angle_x, width))
-        .ok_or("missing intrinsics: no `fl_x` and no `camera_angle_x`")?;
-    let fy = own
-        .fl_y
-        .or(top.fl_y)
-        .or_else(|| from_angle(json.camera_angle_y, height))
-        .unwrap_or(fx);
-    let cx = own.cx.or(top.cx).unwrap_or(0.5 * width as f64);
-    let cy = own.cy.or(top.cy).unwrap_or(0.5 * height as f64);
-    for (v, what) in [(fx, "focal length x"), (fy, "focal length y")] {
-        if !(v.is_finite() && v > 0.0 && (v as f32).is_finite()) {
+    let keys = IntrinsicKeys {
+        fl_x: own.fl_x.or(top.fl_x),
+        fl_y: own.fl_y.or(top.fl_y),
+        cx: own.cx.or(top.cx),
+        cy: own.cy.or(top.cy),
+        camera_angle_x: json.camera_angle_x,
+        camera_angle_y: json.camera_angle_y,
+    };
+    keys.intrinsics(width, height)
+}
+
+/// The intrinsics keys of a transforms.json camera (top level, frame or a
+/// stroke document's camera), resolved in one place.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct IntrinsicKeys {
+    pub fl_x: Option<f64>,
+    pub fl_y: Option<f64>,
+    pub cx: Option<f64>,
+    pub cy: Option<f64>,
+    pub camera_angle_x: Option<f64>,
+    pub camera_angle_y: Option<f64>,
+}
+
+impl IntrinsicKeys {
+    /// Intrinsics for a `width`×`height` image: focal lengths from `fl_x` /
+    /// `fl_y` or Blender's field of view (`fl_y` defaults to `fl_x`), the
+    /// principal point at the centre unless given; all checked finite and
+    /// focal lengths positive.
+    pub(crate) fn intrinsics(&self, width: u32, height: u32) -> std::result::Result<Intrinsics, String> {
+        let from_angle = |angle: Option<f64>, side: u32| angle.map(|a| 0.5 * side as f64 / (0.5 * a).tan());
+        let fx = self
+            .fl_x
+            .or_else(|| from_angle(self.camera_angle_x, width))
+            .ok_or("missing intrinsics: no `fl_x` and no `camera_angle_x`")?;
+        let fy = self
+            .fl_y
+            .or_else(|| from_angle(self.camera_angle_y, height))
+            .unwrap_or(fx);
+        let k = Intrinsics {
+            width,
+            height,
+            fx: fx as f32,
+            fy: fy as f32,
+            cx: self.cx.unwrap_or(0.5 * width as f64) as f32,
+            cy: self.cy.unwrap_or(0.5 * height as f64) as f32,
+        };
+        check_intrinsics(&k)?;
+        Ok(k)
+    }
+}
+
+/// Finite intrinsics with positive focal lengths and an image size within
+/// [`crate::limits::image_size_ok`].
+pub(crate) fn check_intrinsics(k: &Intrinsics) -> std::result::Result<(), String> {
+    if !crate::limits::image_size_ok(k.width, k.height) {
+        return Err(format!("bad image size {}x{}", k.width, k.height));
+    }
+    for (v, what) in [(k.fx, "focal length x"), (k.fy, "focal length y")] {
+        if !(v.is_finite() && v > 0.0) {
             return Err(format!("bad intrinsics: {what} = {v}"));
         }
     }
-    for (v, what) in [(cx, "cx"), (cy, "cy")] {
-        if !(v as f32).is_finite() {
+    for (v, what) in [(k.cx, "cx"), (k.cy, "cy")] {
+        if !v.is_finite() {
             return Err(format!("bad intrinsics: {what} = {v}"));
         }
     }
-    Ok(Intrinsics {
-        width,
-        height,
-        fx: fx as f32,
-        fy: fy as f32,
-        cx: cx as f32,
-        cy: cy as f32,
-    })
+    Ok(())
 }
 
 fn side(v: f64, key: &str) -> std::result::Result<u32, String> {

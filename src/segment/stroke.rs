@@ -6,7 +6,7 @@ use crate::camera::{Camera, CameraSet, Intrinsics};
 use crate::ensure;
 use crate::error::{Error, Result};
 use crate::render::{render_rays, RenderOptions, Scene};
-use glam::{Affine3A, Mat4, Vec2};
+use glam::{Affine3A, Vec2};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -224,50 +224,35 @@ impl CameraDoc {
             ..Default::default()
         }
     }
+    /// The camera, parsed by the camera-set reader's rules (a rigid pose;
+    /// intrinsics from `intrinsics` or the transforms.json keys).
     pub fn to_camera(&self) -> Result<Camera> {
+        let fail = |why: String| Error::invalid(format!("stroke camera: {why}"));
         let m = self
             .transform_matrix
-            .ok_or_else(|| Error::invalid("stroke camera has no transform_matrix / c2w"))?;
-        ensure!(
-            m.iter().flatten().all(|v| v.is_finite()),
-            "stroke camera matrix has a non-finite value"
-        );
-        let mat = Mat4::from_cols_array_2d(&m).transpose();
-        let c2w = Affine3A::from_mat4(mat);
-        ensure!(
-            c2w.matrix3.determinant().abs() > 1e-6,
-            "stroke camera matrix is singular"
-        );
-        let k = if let Some(k) = self.intrinsics {
-            k
-        } else {
-            let (w, h) = match (self.w, self.h) {
-                (Some(w), Some(h)) => (w, h),
-                _ => return Err(Error::invalid("stroke camera needs image size 'w' and 'h'")),
-            };
-            match (self.fl_x, self.camera_angle_x) {
-                (Some(fx), _) => Intrinsics {
-                    width: w,
-                    height: h,
-                    fx,
-                    fy: self.fl_y.unwrap_or(fx),
-                    cx: self.cx.unwrap_or(w as f32 / 2.0),
-                    cy: self.cy.unwrap_or(h as f32 / 2.0),
-                },
-                (None, Some(a)) => Intrinsics::from_fov_x(w, h, a),
-                (None, None) => return Err(Error::invalid("stroke camera needs 'fl_x' or 'camera_angle_x'")),
+            .ok_or_else(|| fail("no transform_matrix / c2w".into()))?;
+        let rows: Vec<Vec<f64>> = m.iter().map(|r| r.iter().map(|&v| f64::from(v)).collect()).collect();
+        let c2w = crate::camera::set::rigid_from_rows(&rows).map_err(fail)?;
+        let k = match self.intrinsics {
+            Some(k) => {
+                crate::camera::set::check_intrinsics(&k).map_err(fail)?;
+                k
+            }
+            None => {
+                let (Some(w), Some(h)) = (self.w, self.h) else {
+                    return Err(fail("needs image size 'w' and 'h'".into()));
+                };
+                let keys = crate::camera::set::IntrinsicKeys {
+                    fl_x: self.fl_x.map(f64::from),
+                    fl_y: self.fl_y.map(f64::from),
+                    cx: self.cx.map(f64::from),
+                    cy: self.cy.map(f64::from),
+                    camera_angle_x: self.camera_angle_x.map(f64::from),
+                    camera_angle_y: None,
+                };
+                keys.intrinsics(w, h).map_err(fail)?
             }
         };
-        ensure!(
-            k.width >= 1 && k.height >= 1 && k.width <= 16384 && k.height <= 16384,
-            "stroke camera size {}x{} is out of range",
-            k.width,
-            k.height
-        );
-        ensure!(
-            k.fx.is_finite() && k.fx > 0.0 && k.fy.is_finite() && k.fy > 0.0,
-            "stroke camera focal length must be positive"
-        );
         if let Some(ndc) = &self.ndc {
             ndc.validate()?;
         }
@@ -485,6 +470,36 @@ pub fn scribble_stroke(path: &Path, camera: Camera, polarity: Polarity, object: 
 mod tests {
     use super::*;
     use glam::Vec3;
+
+    #[test]
+    fn stroke_cameras_parse_like_camera_set_frames() {
+        let m = "[[0.0, 0.0, 1.0, 2.0], [0.0, 1.0, 0.0, 0.5], [-1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]";
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("transforms.json");
+        let set = format!(
+            r#"{{"camera_angle_x": 0.7, "w": 64, "h": 48, "frames": [{{"file_path": "a", "transform_matrix": {m}}}]}}"#
+        );
+        std::fs::write(&path, set).unwrap();
+        let from_set = CameraSet::load(&path).unwrap().frames[0].camera;
+        let doc: CameraDoc = serde_json::from_str(&format!(
+            r#"{{"camera_angle_x": 0.7, "w": 64, "h": 48, "transform_matrix": {m}}}"#
+        ))
+        .unwrap();
+        let from_doc = doc.to_camera().unwrap();
+        assert_eq!(from_doc.intrinsics, from_set.intrinsics);
+        assert_eq!(from_doc.c2w, from_set.c2w);
+        // The same rules refuse the same poses: a scaled matrix is not a camera.
+        let mut scaled = doc.clone();
+        scaled.transform_matrix.as_mut().unwrap()[0][2] = 2.0;
+        let e = scaled.to_camera().unwrap_err().to_string();
+        assert!(
+            e.starts_with("stroke camera: ") && e.contains("not a rigid transform"),
+            "{e}"
+        );
+        let mut huge = doc;
+        huge.w = Some(1 << 20);
+        assert!(huge.to_camera().unwrap_err().to_string().contains("bad image size"));
+    }
 
     fn stroke(points: &[[f32; 2]], radius: u32, w: u32, h: u32) -> Stroke {
         Stroke {
