@@ -81,6 +81,8 @@ pub struct QualityConfig {
     /// σ of the guided upsampling of the teacher's maps; `None`: the
     /// training default.
     pub feature_guide: Option<f32>,
+    /// Longest side of the feature grid; `None`: the training default.
+    pub feature_res: Option<usize>,
 }
 
 impl Default for QualityConfig {
@@ -99,6 +101,7 @@ impl Default for QualityConfig {
             params: SegmentParams::default(),
             teacher_size: 0,
             feature_guide: None,
+            feature_res: None,
         }
     }
 }
@@ -139,6 +142,9 @@ impl QualityConfig {
         c.feature_iters = self.feature_iters.unwrap_or(DEFAULT_FEATURE_ITERS);
         if let Some(g) = self.feature_guide {
             c.feature_guide = g;
+        }
+        if let Some(r) = self.feature_res {
+            c.feature_res = r;
         }
         c
     }

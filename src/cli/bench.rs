@@ -67,6 +67,9 @@ pub struct QualityArgs {
     /// default: `isrf train`'s).
     #[arg(long)]
     pub feature_guide: Option<f32>,
+    /// Longest side of the feature grid (default: `isrf train`'s).
+    #[arg(long)]
+    pub feature_res: Option<usize>,
     /// Print the report as JSON instead of tables.
     #[arg(long)]
     pub json: bool,
@@ -301,6 +304,7 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         params: a.params.params()?,
         teacher_size: a.teacher_size,
         feature_guide: a.feature_guide,
+        feature_res: a.feature_res,
         ..Default::default()
     };
     if !a.scenes.is_empty() {
