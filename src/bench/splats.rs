@@ -131,14 +131,7 @@ pub fn oracle_features(scene: &demo::DemoScene, field: &Field, orbit: usize) -> 
     };
     let mut maps = vec![];
     for c in &cams {
-        let f = render(&truth, c, &opts)?;
-        maps.push(FeatureMap {
-            width: f.width as usize,
-            height: f.height as usize,
-            image_width: f.width,
-            image_height: f.height,
-            data: f.out.features,
-        });
+        maps.push(FeatureMap::from_frame(render(&truth, c, &opts)?));
     }
     let maps = FeatureMaps::new(scene.field.feature_channels(), maps)?;
     Ok(lift_maps(field, &cams, &maps, &|_, _| ())?.0)

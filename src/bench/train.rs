@@ -46,13 +46,7 @@ pub fn demo_capture(scene: &str, res: usize, n: usize, width: u32) -> Result<Dem
             rgb: f.out.color.iter().flat_map(|c| c.to_array()).collect(),
             alpha: None,
         });
-        maps.push(FeatureMap {
-            width: f.width as usize,
-            height: f.height as usize,
-            image_width: f.width,
-            image_height: f.height,
-            data: f.out.features,
-        });
+        maps.push(FeatureMap::from_frame(f));
     }
     Ok(DemoCapture {
         cameras,

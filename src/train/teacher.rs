@@ -19,6 +19,20 @@ pub struct FeatureMap {
     pub data: Vec<f32>,
 }
 
+impl FeatureMap {
+    /// The features of a rendered frame as a map at the frame's own
+    /// resolution (what a perfect teacher would give).
+    pub fn from_frame(f: crate::render::Frame) -> FeatureMap {
+        FeatureMap {
+            width: f.width as usize,
+            height: f.height as usize,
+            image_width: f.width,
+            image_height: f.height,
+            data: f.out.features,
+        }
+    }
+}
+
 /// Maps of every training view, all with the same channel count.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FeatureMaps {
