@@ -53,6 +53,10 @@ pub struct Args {
     /// (default 128).
     #[arg(long)]
     pub feature_res: Option<usize>,
+    /// Colour σ of the image-guided upsampling of the teacher's maps during
+    /// distillation (default 0.1; 0: plain bilinear sampling).
+    #[arg(long)]
+    pub feature_guide: Option<f32>,
     /// Checkpoint file (default: next to --out, `<name>.ckpt.safetensors`).
     #[arg(long)]
     pub checkpoint: Option<PathBuf>,
@@ -177,6 +181,9 @@ fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig
     if let Some(r) = a.feature_res {
         c.feature_res = r;
     }
+    if let Some(g) = a.feature_guide {
+        c.feature_guide = g;
+    }
     c.feature_iters = a
         .feature_iters
         .unwrap_or(if teacher { preset_feature_iters } else { 0 });
@@ -224,6 +231,10 @@ pub fn run(a: Args) -> Result<()> {
         let mut s = Session::resume(ds, &ckpt, a.iters, a.feature_iters)?;
         if a.redistill {
             s.trainer.restart_features(a.feature_res)?;
+            if let Some(g) = a.feature_guide {
+                s.trainer.config.feature_guide = g;
+                s.trainer.config.validate()?;
+            }
         }
         eprintln!("resumed from {} at iteration {}", ckpt.display(), s.trainer.iter);
         s

@@ -602,6 +602,28 @@ mod tests {
     }
 
     #[test]
+    fn the_guide_sigma_must_be_finite_and_not_negative() {
+        use crate::train::TrainConfig;
+        for ok in [0.0, 0.1, 2.0] {
+            assert!(TrainConfig {
+                feature_guide: ok,
+                ..Default::default()
+            }
+            .validate()
+            .is_ok());
+        }
+        for bad in [-0.1, f32::NAN, f32::INFINITY] {
+            let e = TrainConfig {
+                feature_guide: bad,
+                ..Default::default()
+            }
+            .validate()
+            .unwrap_err();
+            assert!(e.to_string().contains("feature guide"), "{e}");
+        }
+    }
+
+    #[test]
     fn guides_must_match_their_maps() {
         let (mut maps, img) = split_map();
         assert!(maps.attach_guides(&[]).is_err());

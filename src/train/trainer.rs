@@ -188,13 +188,17 @@ impl TrainConfig {
             self.tv_sh,
             self.tv_features,
             self.feature_lambda,
-            self.feature_guide,
             self.lr_vm_grid,
             self.lr_vm_net,
         ];
         ensure!(
             finite.iter().all(|x| x.is_finite() && *x >= 0.0),
             "learning rates, floors and weights must be finite and ≥ 0"
+        );
+        ensure!(
+            self.feature_guide.is_finite() && self.feature_guide >= 0.0,
+            "feature guide σ must be finite and ≥ 0 (0: bilinear teacher maps), got {}",
+            self.feature_guide
         );
         ensure!(
             self.background.iter().all(|c| c.is_finite()),
