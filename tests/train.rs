@@ -426,6 +426,33 @@ fn pruning_keeps_dense_voxels_and_a_margin() {
 }
 
 #[test]
+fn colour_is_stored_for_active_voxels_only_and_survives_pruning() {
+    let geom = GridGeom::new(unit_box(), [21; 3]);
+    let mut m = Model::new(geom, 1, 0.0, 1e-3).unwrap();
+    assert_eq!(m.sh.len(), geom.len() * m.sh_stride());
+    let (centre, edge) = (geom.index(10, 10, 10), geom.index(11, 10, 10));
+    m.density[centre] = 50.0;
+    // Tag every voxel's colour with its own index to follow the rows.
+    let k = m.sh_stride();
+    for (v, row) in m.sh.chunks_mut(k).enumerate() {
+        row.fill(v as f32);
+    }
+    m.prune(step_of(&geom), 1e-2, 1);
+    assert_eq!(m.sh.len(), 27 * k, "27 active voxels, one colour row each");
+    assert_eq!(m.sh_of(centre).unwrap(), &[centre as f32; 12][..]);
+    assert_eq!(m.sh_of(edge).unwrap(), &[edge as f32; 12][..]);
+    assert!(
+        m.sh_of(geom.index(13, 10, 10)).is_none(),
+        "pruned voxels have no colour"
+    );
+    // A checkpoint written before (one row per grid point) still loads.
+    let dense: Vec<f32> = (0..geom.len()).flat_map(|v| [v as f32; 12]).collect();
+    let r = Model::from_parts(geom, 0.0, 1, m.density.clone(), dense, m.active.clone(), None).unwrap();
+    assert_eq!(r.sh, m.sh);
+    assert!(Model::from_parts(geom, 0.0, 1, m.density.clone(), vec![0.0; 5], m.active.clone(), None).is_err());
+}
+
+#[test]
 fn export_round_trips_through_a_field_file() {
     let m = random_model(8, 1, Some((5, 3)), 7);
     let dir = tempfile::tempdir().unwrap();

@@ -171,13 +171,20 @@ pub fn load(path: &Path) -> Result<Restored> {
     let n = geom.len();
     let k = 3 * super::model::sh_coeffs(state.degree);
     let density = t.f32("density", &[n])?;
-    let sh = t.f32("sh", &[n * k])?;
     let words = n.div_ceil(64);
     let active_bytes = t.u8("active", &[words * 8])?;
     let active: Vec<u64> = active_bytes
         .chunks_exact(8)
         .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
         .collect();
+    // SH rows per active voxel; checkpoints written before hold a row per
+    // grid point (the model accepts either).
+    let active_count: usize = active.iter().map(|w| w.count_ones() as usize).sum();
+    let sh_len =
+        t.st.tensor("sh")
+            .map(|v| v.shape().iter().product::<usize>())
+            .unwrap_or(0);
+    let sh = t.f32("sh", &[if sh_len == n * k { n * k } else { active_count * k }])?;
     // The Adam moments saved beside array `name` of `len` values.
     let moments = |name: &str, len: usize| -> Result<Moments> {
         Ok(Moments {

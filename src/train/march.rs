@@ -77,13 +77,16 @@ pub struct RayOut {
 
 /// Gradient accumulators of one thread. Density and SH gradients are per
 /// slot of the model's active voxels ([`Model::slots`]; pruned voxels never
-/// train), `marks` flag every slot that received a gradient since the last
-/// optimizer step. Features (a small dense grid) are per grid point.
+/// train), `marks` flag every slot whose density received a gradient since
+/// the last optimizer step, `sh_marks` those whose colour did (only shaded
+/// samples: far fewer, and the optimizer's cost follows them). Features (a
+/// small dense grid) are per grid point.
 #[derive(Clone, Debug)]
 pub struct GradBuf {
     pub density: Vec<f32>,
     pub sh: Vec<f32>,
     pub marks: Vec<u64>,
+    pub sh_marks: Vec<u64>,
     pub feat: Vec<f32>,
     pub feat_marks: Vec<u64>,
     /// VM appearance: dense gradients of the grid and network arrays.
@@ -99,6 +102,7 @@ impl GradBuf {
             density: vec![0.0; n],
             sh: vec![0.0; n * model.sh_stride()],
             marks: vec![0; n.div_ceil(64)],
+            sh_marks: vec![0; n.div_ceil(64)],
             feat: vec![0.0; nf * fc],
             feat_marks: vec![0; nf.div_ceil(64)],
             vm_grid: vec![0.0; model.vm.as_ref().map_or(0, |v| v.grid.len())],
@@ -204,14 +208,17 @@ fn span(model: &Model, ray: &Ray, step: f32) -> Option<(i64, f32)> {
     Some(((t0 / step - 0.5).ceil().max(0.0) as i64, t1))
 }
 
-/// Colour of a sample from the SH coefficients at its cell's corners.
+/// Colour of a sample from the SH coefficients at its cell's corners
+/// (stored per active voxel; a pruned corner counts as 0).
 #[inline]
-fn sh_color<const K: usize>(sh: &[f32], base: usize, off: &[usize; 8], w8: &[f32; 8], basis: &[f32]) -> [f32; 3] {
+fn sh_color<const K: usize>(model: &Model, base: usize, off: &[usize; 8], w8: &[f32; 8], basis: &[f32]) -> [f32; 3] {
     let stride = 3 * K;
     let mut acc = [[0.0f32; K]; 3];
     for k in 0..8 {
-        let v = (base + off[k]) * stride;
-        let src = &sh[v..v + stride];
+        let Some(v) = model.slots.slot(base + off[k]) else {
+            continue;
+        };
+        let src = &model.sh[v * stride..(v + 1) * stride];
         for c in 0..3 {
             for j in 0..K {
                 acc[c][j] += w8[k] * src[c * K + j];
@@ -313,7 +320,7 @@ fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut
                         smp.row = start as u32;
                         vm.shade(g, &s.dir_enc, &mut s.vm_rows[start..])
                     }
-                    None => sh_color::<K>(&model.sh[..], base, &lat.off, &w8, &basis),
+                    None => sh_color::<K>(model, base, &lat.off, &w8, &basis),
                 };
                 smp.shaded = true;
                 color += w * Vec3::from(smp.color);
@@ -421,6 +428,7 @@ fn backward_k<const K: usize>(
                     continue;
                 };
                 let dst = &mut grads.sh[v * stride..(v + 1) * stride];
+                set_bit(&mut grads.sh_marks, v);
                 let wk = w8[k];
                 for ch in 0..3 {
                     for j in 0..K {

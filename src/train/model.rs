@@ -4,9 +4,12 @@
 //!
 //! - `density`: raw values; σ = softplus(raw + shift) in the field's own
 //!   length units (the renderer's [`Activation::Softplus`]).
-//! - `sh`: per voxel `3·K` spherical-harmonic coefficients, K = (degree+1)²,
-//!   laid out `[r0..rK, g0..gK, b0..bK]`; colour = sigmoid(Σ cₖ Yₖ(dir))
-//!   exactly as [`crate::field::sh::color`] evaluates degree 2.
+//! - `sh`: per active voxel (in slot order, [`Slots`]) `3·K` spherical-
+//!   harmonic coefficients, K = (degree+1)², laid out `[r0..rK, g0..gK,
+//!   b0..bK]`; colour = sigmoid(Σ cₖ Yₖ(dir)) exactly as
+//!   [`crate::field::sh::color`] evaluates degree 2. Pruned voxels have no
+//!   colour (their coefficients count as 0), so colour memory follows the
+//!   occupied space: at 512×455×89 on fern a dense SH grid would take 2.2 GB.
 //! - `features`: optional dense semantic feature grid with its own (usually
 //!   coarser) resolution over the same bounds.
 //!
@@ -126,7 +129,7 @@ impl Model {
             shift,
             degree,
             density: vec![raw0; n],
-            sh: vec![0.0; n * 3 * sh_coeffs(degree)],
+            sh: vec![],
             features: None,
             vm: None,
             active: vec![u64::MAX; n.div_ceil(64)],
@@ -136,11 +139,13 @@ impl Model {
             block_dims: [1; 3],
         };
         m.clear_tail();
-        m.refresh_masks();
+        m.rebuild_masks();
+        m.sh = vec![0.0; m.slots.len() * m.sh_stride()];
         Ok(m)
     }
 
-    /// Reassembles a model from its arrays (checkpoints); checks sizes.
+    /// Reassembles a model from its arrays (checkpoints); checks sizes. `sh`
+    /// holds a row per active voxel, or (older checkpoints) per grid point.
     pub fn from_parts(
         geom: GridGeom,
         shift: f32,
@@ -154,7 +159,7 @@ impl Model {
         let n = geom.len();
         crate::ensure!(degree <= 2, "SH degree must be 0, 1 or 2, got {degree}");
         crate::ensure!(
-            density.len() == n && sh.len() == n * 3 * sh_coeffs(degree) && active.len() == n.div_ceil(64),
+            density.len() == n && active.len() == n.div_ceil(64),
             "model arrays do not match the grid {:?}",
             geom.res
         );
@@ -169,7 +174,7 @@ impl Model {
             shift,
             degree,
             density,
-            sh,
+            sh: vec![],
             features,
             vm: None,
             active,
@@ -179,7 +184,21 @@ impl Model {
             block_dims: [1; 3],
         };
         m.clear_tail();
-        m.refresh_masks();
+        m.rebuild_masks();
+        let stride = m.sh_stride();
+        m.sh = if sh.len() == m.slots.len() * stride {
+            sh
+        } else if sh.len() == n * stride {
+            let all = Slots::new(geom.res, &vec![u64::MAX; n.div_ceil(64)]);
+            remap_rows(&sh, &all, &m.slots, stride)
+        } else {
+            return Err(crate::Error::invalid(format!(
+                "SH array of {} values matches neither the {} active voxels nor the grid {:?}",
+                sh.len(),
+                m.slots.len(),
+                geom.res
+            )));
+        };
         Ok(m)
     }
 
@@ -199,6 +218,12 @@ impl Model {
     pub fn sigma_at(&self, i: usize) -> f32 {
         self.activation().apply(self.density[i])
     }
+    /// SH coefficients of grid point `voxel`, `None` when it is pruned.
+    #[inline]
+    pub fn sh_of(&self, voxel: usize) -> Option<&[f32]> {
+        let k = self.sh_stride();
+        self.slots.slot(voxel).map(|s| &self.sh[s * k..(s + 1) * k])
+    }
     pub fn active_count(&self) -> usize {
         self.active.iter().map(|w| w.count_ones() as usize).sum()
     }
@@ -211,9 +236,18 @@ impl Model {
         }
     }
 
-    /// Recomputes the cell and block masks from `active`; pruned voxels get
-    /// [`PRUNED_RAW`] so that what is skipped is really empty.
+    /// Applies a change of `active`: masks and slots recomputed, the colour
+    /// rows renumbered (rows of newly active voxels are 0).
     pub fn refresh_masks(&mut self) {
+        let old = std::mem::replace(&mut self.slots, Slots::new([0; 3], &[]));
+        self.rebuild_masks();
+        self.sh = remap_rows(&self.sh, &old, &self.slots, self.sh_stride());
+    }
+
+    /// Recomputes the cell and block masks and the slots from `active`;
+    /// pruned voxels get [`PRUNED_RAW`] so that what is skipped is really
+    /// empty. Per-slot arrays are the caller's.
+    fn rebuild_masks(&mut self) {
         let g = self.geom;
         let [nx, ny, nz] = g.res;
         let active = &self.active;
@@ -290,29 +324,13 @@ impl Model {
     pub fn resampled(&self, geom: GridGeom) -> Result<Model> {
         check_res(geom.res, "training grid")?;
         let n = geom.len();
-        let k = self.sh_stride();
         let mut density = vec![PRUNED_RAW; n];
-        let mut sh = vec![0.0f32; n * k];
         let mut active = vec![0u64; n.div_ceil(64)];
-        density
-            .par_iter_mut()
-            .zip(sh.par_chunks_mut(k))
-            .enumerate()
-            .for_each(|(i, (d, s))| {
-                let p = geom.point_of(i);
-                if let Some(c) = self.geom.corners(p) {
-                    let mut r = 0.0;
-                    for j in 0..8 {
-                        let w = c.weight[j];
-                        r += w * self.density[c.index[j]];
-                        let src = &self.sh[c.index[j] * k..(c.index[j] + 1) * k];
-                        for (o, v) in s.iter_mut().zip(src) {
-                            *o += w * v;
-                        }
-                    }
-                    *d = r;
-                }
-            });
+        density.par_iter_mut().enumerate().for_each(|(i, d)| {
+            if let Some(c) = self.geom.corners(geom.point_of(i)) {
+                *d = (0..8).map(|j| c.weight[j] * self.density[c.index[j]]).sum();
+            }
+        });
         // Active where any corner of the old cell holding the point is active.
         active.par_iter_mut().enumerate().for_each(|(w, bits)| {
             for b in 0..64 {
@@ -327,6 +345,28 @@ impl Model {
                 }
             }
         });
+        // Colour of the new active points: the old active corners' SH,
+        // weights renormalised over them (pruned corners have no colour).
+        let k = self.sh_stride();
+        let slots = Slots::new(geom.res, &active);
+        let mut sh = vec![0.0f32; slots.len() * k];
+        sh.par_chunks_mut(k).zip(&slots.voxels).for_each(|(s, &v)| {
+            let Some(c) = self.geom.corners(geom.point_of(v as usize)) else {
+                return;
+            };
+            let mut total = 0.0;
+            for j in 0..8 {
+                if let (true, Some(src)) = (c.weight[j] > 0.0, self.sh_of(c.index[j])) {
+                    total += c.weight[j];
+                    for (o, x) in s.iter_mut().zip(src) {
+                        *o += c.weight[j] * x;
+                    }
+                }
+            }
+            if total > 0.0 {
+                s.iter_mut().for_each(|o| *o /= total);
+            }
+        });
         let features = self.features.clone();
         let mut m = Model::from_parts(geom, self.shift, self.degree, density, sh, active, features)?;
         m.vm = self.vm.as_ref().map(|v| v.resampled(&self.geom, &geom));
@@ -339,8 +379,7 @@ impl Model {
             return self;
         }
         let (ko, kn) = (sh_coeffs(self.degree), sh_coeffs(degree));
-        let n = self.len();
-        let mut sh = vec![0.0f32; n * 3 * kn];
+        let mut sh = vec![0.0f32; self.slots.len() * 3 * kn];
         sh.par_chunks_mut(3 * kn)
             .zip(self.sh.par_chunks(3 * ko))
             .for_each(|(d, s)| {
@@ -434,8 +473,10 @@ impl Model {
     /// SH coefficients of voxel `v` padded to degree 2, in f16.
     fn sh_row(&self, v: usize, row: &mut [f16]) {
         let k = sh_coeffs(self.degree);
-        let src = &self.sh[v * 3 * k..(v + 1) * 3 * k];
         row.fill(f16::ZERO);
+        let Some(src) = self.sh_of(v) else {
+            return;
+        };
         for c in 0..3 {
             for j in 0..k {
                 row[c * SH_COEFFS + j] = f16::from_f32(src[c * k + j]);
@@ -480,6 +521,20 @@ impl Model {
         let p1 = Vec3::select(p1.cmpgt(p0), p1, p0 + sp);
         Some(Aabb::new(p0, p1))
     }
+}
+
+/// Per-slot rows (`stride` values each) of `old`'s slots renumbered for
+/// `new`; voxels `old` lacks get zeros.
+pub fn remap_rows(values: &[f32], old: &Slots, new: &Slots, stride: usize) -> Vec<f32> {
+    let mut out = vec![0.0f32; new.len() * stride];
+    out.par_chunks_mut(stride.max(1))
+        .zip(new.voxels.par_iter())
+        .for_each(|(row, &voxel)| {
+            if let Some(o) = old.slot(voxel as usize) {
+                row.copy_from_slice(&values[o * stride..(o + 1) * stride]);
+            }
+        });
+    out
 }
 
 /// Grid resolution with about `longest` points along the longest side of

@@ -9,7 +9,7 @@
 //! Moments are per slot too, so memory follows the active voxels, not the
 //! grid. Untouched slots cost one zero-word test per 64.
 
-use super::model::Slots;
+use super::model::{remap_rows, Slots};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -52,18 +52,10 @@ impl Moments {
     /// subset of `old`'s, e.g. after pruning), `stride` values per slot;
     /// voxels `old` lacks start from zero.
     pub fn remap(&self, old: &Slots, new: &Slots, stride: usize) -> Moments {
-        let mut out = Moments::new(new.len() * stride);
-        out.m
-            .par_chunks_mut(stride)
-            .zip(out.v.par_chunks_mut(stride))
-            .zip(new.voxels.par_iter())
-            .for_each(|((m, v), &voxel)| {
-                if let Some(o) = old.slot(voxel as usize) {
-                    m.copy_from_slice(&self.m[o * stride..(o + 1) * stride]);
-                    v.copy_from_slice(&self.v[o * stride..(o + 1) * stride]);
-                }
-            });
-        out
+        Moments {
+            m: remap_rows(&self.m, old, new, stride),
+            v: remap_rows(&self.v, old, new, stride),
+        }
     }
 }
 
@@ -113,6 +105,7 @@ pub fn adam_step(
         }
     }
     let AdamParams { beta1, beta2, eps } = hp;
+    let (lo, hi) = clamp;
     mom.m
         .par_chunks_mut(span)
         .zip(mom.v.par_chunks_mut(span))
@@ -122,7 +115,9 @@ pub fn adam_step(
         .for_each(|(c, (((m, v), mut gs), (offset, p)))| {
             let w0 = c * CHUNK / 64;
             let words = &touched[w0..(w0 + CHUNK / 64).min(touched.len())];
-            let mut sum = vec![0.0f32; stride];
+            let Some((first, rest)) = gs.split_first_mut() else {
+                return;
+            };
             for (wi, &word) in words.iter().enumerate() {
                 let mut bits = word;
                 while bits != 0 {
@@ -130,21 +125,23 @@ pub fn adam_step(
                     bits &= bits - 1;
                     let local = wi * 64 + b;
                     let r = local * stride..(local + 1) * stride;
-                    sum.iter_mut().for_each(|s| *s = 0.0);
-                    for g in gs.iter_mut() {
-                        for (s, x) in sum.iter_mut().zip(&mut g[r.clone()]) {
+                    let point = slots.map_or(c * CHUNK + local, |sl| sl.voxels[c * CHUNK + local] as usize);
+                    let p0 = point * stride - offset;
+                    // The first thread's slice collects the sum; slices and
+                    // zips (no indexing) so that the loops vectorise.
+                    let g = &mut first[r.clone()];
+                    for other in rest.iter_mut() {
+                        for (s, x) in g.iter_mut().zip(&mut other[r.clone()]) {
                             *s += *x;
                             *x = 0.0;
                         }
                     }
-                    let point = slots.map_or(c * CHUNK + local, |sl| sl.voxels[c * CHUNK + local] as usize);
-                    let p0 = point * stride - offset;
-                    for (j, &gj) in sum.iter().enumerate() {
-                        let k = r.start + j;
-                        m[k] = beta1 * m[k] + (1.0 - beta1) * gj;
-                        v[k] = beta2 * v[k] + (1.0 - beta2) * gj * gj;
-                        let q = &mut p[p0 + j];
-                        *q = (*q - lr_t * m[k] / (v[k].sqrt() + eps)).clamp(clamp.0, clamp.1);
+                    let values = p[p0..p0 + stride].iter_mut().zip(&mut m[r.clone()]).zip(&mut v[r]);
+                    for (((q, mk), vk), gk) in values.zip(g.iter_mut()) {
+                        let gj = std::mem::take(gk);
+                        *mk = beta1 * *mk + (1.0 - beta1) * gj;
+                        *vk = beta2 * *vk + (1.0 - beta2) * gj * gj;
+                        *q = (*q - lr_t * *mk / (vk.sqrt() + eps)).clamp(lo, hi);
                     }
                 }
             }
@@ -204,10 +201,21 @@ pub fn corrected_lr(lr: f32, t: u64, hp: AdamParams) -> f32 {
     lr * (1.0 - hp.beta2.powi(t)).sqrt() / (1.0 - hp.beta1.powi(t))
 }
 
+/// Where the values of a regularised array live (see [`add_tv`]).
+#[derive(Clone, Copy, Debug)]
+pub enum Layout<'a> {
+    /// Parameters and gradients per grid point (features).
+    Points,
+    /// Parameters per grid point, gradients per slot (density).
+    SlotGrads(&'a Slots),
+    /// Parameters and gradients per slot (SH colour); pruned neighbours
+    /// have no value and are left out.
+    Slots(&'a Slots),
+}
+
 /// Adds the gradient of `weight · Σ (xᵥ − xₙ)²` over axis neighbours (the
-/// squared total variation) at the touched slots to `grad` (per slot, as in
-/// [`adam_step`]; `params` per grid point); `stride` values per point, each
-/// channel on its own.
+/// squared total variation) at the touched slots (or points) to `grad`;
+/// `stride` values per point, each channel on its own.
 #[allow(clippy::too_many_arguments)]
 pub fn add_tv(
     params: &[f32],
@@ -215,7 +223,7 @@ pub fn add_tv(
     stride: usize,
     res: [usize; 3],
     touched: &[u64],
-    slots: Option<&Slots>,
+    layout: Layout,
     weight: f32,
 ) {
     if weight == 0.0 {
@@ -232,7 +240,13 @@ pub fn add_tv(
                 let b = bits.trailing_zeros() as usize;
                 bits &= bits - 1;
                 let local = wi * 64 + b;
-                let i = slots.map_or(c * CHUNK + local, |sl| sl.voxels[c * CHUNK + local] as usize);
+                let slot = c * CHUNK + local;
+                // Grid point of this entry, and where its parameters live.
+                let (i, own) = match layout {
+                    Layout::Points => (slot, slot),
+                    Layout::SlotGrads(sl) => (sl.voxels[slot] as usize, sl.voxels[slot] as usize),
+                    Layout::Slots(sl) => (sl.voxels[slot] as usize, slot),
+                };
                 let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
                 let nb = [
                     (x > 0).then(|| i - 1),
@@ -243,8 +257,17 @@ pub fn add_tv(
                     (z + 1 < nz).then(|| i + nx * ny),
                 ];
                 for j in nb.into_iter().flatten() {
-                    for s in 0..stride {
-                        g[local * stride + s] += 2.0 * weight * (params[i * stride + s] - params[j * stride + s]);
+                    let Some(j) = (match layout {
+                        Layout::Slots(sl) => sl.slot(j),
+                        _ => Some(j),
+                    }) else {
+                        continue;
+                    };
+                    let mine = &params[own * stride..(own + 1) * stride];
+                    let theirs = &params[j * stride..(j + 1) * stride];
+                    let out = &mut g[local * stride..(local + 1) * stride];
+                    for ((o, a), b) in out.iter_mut().zip(mine).zip(theirs) {
+                        *o += 2.0 * weight * (a - b);
                     }
                 }
             }

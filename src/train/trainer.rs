@@ -5,7 +5,7 @@
 
 use super::march::{backward, forward, GradBuf, MarchOpts, RayOut, Scratch};
 use super::model::{res_for, Model, PRUNED_RAW};
-use super::optim::{adam_step, add_tv, corrected_lr, dense_adam_step, merge_marks, AdamParams, Moments};
+use super::optim::{adam_step, add_tv, corrected_lr, dense_adam_step, merge_marks, AdamParams, Layout, Moments};
 use super::rays::RaySet;
 use super::teacher::FeatureMaps;
 use super::vm::{VmAppearance, VmShape};
@@ -458,6 +458,7 @@ impl Trainer {
             .prune(self.step_size(), self.config.prune_alpha, self.config.prune_dilate);
         let new = &self.model.slots;
         let stride = self.model.sh_stride();
+        // The model renumbered its own colour rows; the moments follow.
         self.opt.density = self.opt.density.remap(&old, new, 1);
         self.opt.sh = self.opt.sh.remap(&old, new, stride);
         self.reset_buffers(true);
@@ -570,6 +571,8 @@ impl Trainer {
         let voxel = self.model.geom.spacing().min_element();
         let mut marks: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.marks).collect();
         let touched = merge_marks(&mut marks);
+        let mut marks: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.sh_marks).collect();
+        let sh_touched = merge_marks(&mut marks);
         let res = self.model.geom.res;
         if !frozen {
             // TV on voxel-scaled density: the weight means the same at every
@@ -580,7 +583,7 @@ impl Trainer {
                 1,
                 res,
                 &touched,
-                Some(&self.model.slots),
+                Layout::SlotGrads(&self.model.slots),
                 cfg.tv_density * voxel * voxel,
             );
             add_tv(
@@ -588,8 +591,8 @@ impl Trainer {
                 &mut self.grads[0].sh,
                 self.model.sh_stride(),
                 res,
-                &touched,
-                Some(&self.model.slots),
+                &sh_touched,
+                Layout::Slots(&self.model.slots),
                 cfg.tv_sh,
             );
         }
@@ -626,8 +629,8 @@ impl Trainer {
                 &mut self.opt.sh,
                 &mut gs,
                 stride,
-                &touched,
-                Some(&self.model.slots),
+                &sh_touched,
+                None,
                 lr_s,
                 hp,
                 (-1e3, 1e3),
@@ -652,7 +655,7 @@ impl Trainer {
                 f.channels,
                 f.geom.res,
                 &ftouched,
-                None,
+                Layout::Points,
                 cfg.tv_features,
             );
             let lr_f = corrected_lr(cfg.lr_features * fdecay, t, hp);
