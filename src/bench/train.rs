@@ -91,6 +91,8 @@ pub struct StageRow {
     pub rays: u64,
     pub samples: u64,
     pub seconds: f64,
+    /// Seconds in the optimizer (the rest marches rays).
+    pub update_seconds: f64,
     pub last_psnr: f32,
 }
 
@@ -125,6 +127,7 @@ pub fn run_and_measure(trainer: &mut Trainer, mut on_step: impl FnMut(&StepStats
                     rays: 0,
                     samples: 0,
                     seconds: 0.0,
+                    update_seconds: 0.0,
                     last_psnr: 0.0,
                 });
                 rows.last_mut().expect("just pushed")
@@ -134,6 +137,7 @@ pub fn run_and_measure(trainer: &mut Trainer, mut on_step: impl FnMut(&StepStats
         row.rays += s.rays as u64;
         row.samples += s.samples as u64;
         row.seconds += s.seconds as f64;
+        row.update_seconds += s.update_seconds as f64;
         row.last_psnr = s.psnr;
     }
     Ok(rows)
@@ -149,7 +153,16 @@ pub fn demo_trainer(capture: &DemoCapture, config: TrainConfig) -> Result<Traine
 }
 
 pub fn stage_table(rows: &[StageRow]) -> Table {
-    let mut t = Table::new(&["phase", "grid", "iters", "it/s", "rays/s", "samples/ray", "train PSNR"]);
+    let mut t = Table::new(&[
+        "phase",
+        "grid",
+        "iters",
+        "it/s",
+        "rays/s",
+        "samples/ray",
+        "update",
+        "train PSNR",
+    ]);
     for r in rows {
         t.row(vec![
             r.phase.into(),
@@ -158,6 +171,7 @@ pub fn stage_table(rows: &[StageRow]) -> Table {
             format!("{:.2}", r.iters_per_s()),
             format!("{:.0}", r.rays_per_s()),
             format!("{:.1}", r.samples as f64 / r.rays.max(1) as f64),
+            format!("{:.0} %", 100.0 * r.update_seconds / r.seconds.max(1e-9)),
             format!("{:.2}", r.last_psnr),
         ]);
     }

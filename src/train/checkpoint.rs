@@ -238,6 +238,7 @@ pub fn load(path: &Path) -> Result<Restored> {
             rays: h[4] as usize,
             samples: h[5] as u64,
             seconds: h[6],
+            update_seconds: 0.0,
         })
         .collect();
     let mut model = Model::from_parts(geom, state.shift, state.degree, density, sh, active, features)?;

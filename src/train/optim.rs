@@ -10,6 +10,7 @@
 //! grid. Untouched slots cost one zero-word test per 64.
 
 use super::model::{remap_rows, Slots};
+use crate::util::SplitMix64;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -213,10 +214,37 @@ pub enum Layout<'a> {
     Slots(&'a Slots),
 }
 
+/// Weight and sampling of a total-variation term (see [`add_tv`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Tv {
+    pub weight: f32,
+    /// Fraction of the touched points regularised at this step, drawn
+    /// afresh each step from `seed`; their weight is divided by it, so the
+    /// expected gradient is the full one at a fraction of the cost (as
+    /// Plenoxels samples its TV).
+    pub keep: f32,
+    pub seed: u64,
+}
+
+impl Tv {
+    /// Every touched point, every step.
+    pub fn full(weight: f32) -> Tv {
+        Tv {
+            weight,
+            keep: 1.0,
+            seed: 0,
+        }
+    }
+    /// Whether entry `i` is regularised at this step.
+    #[inline]
+    fn keeps(&self, i: usize) -> bool {
+        self.keep >= 1.0 || (SplitMix64::new(self.seed ^ i as u64).unit() as f32) < self.keep
+    }
+}
+
 /// Adds the gradient of `weight · Σ (xᵥ − xₙ)²` over axis neighbours (the
 /// squared total variation) at the touched slots (or points) to `grad`;
 /// `stride` values per point, each channel on its own.
-#[allow(clippy::too_many_arguments)]
 pub fn add_tv(
     params: &[f32],
     grad: &mut [f32],
@@ -224,11 +252,12 @@ pub fn add_tv(
     res: [usize; 3],
     touched: &[u64],
     layout: Layout,
-    weight: f32,
+    tv: Tv,
 ) {
-    if weight == 0.0 {
+    if tv.weight == 0.0 || tv.keep <= 0.0 {
         return;
     }
+    let weight = tv.weight / tv.keep.min(1.0);
     let [nx, ny, nz] = res;
     let span = CHUNK * stride;
     grad.par_chunks_mut(span).enumerate().for_each(|(c, g)| {
@@ -241,6 +270,9 @@ pub fn add_tv(
                 bits &= bits - 1;
                 let local = wi * 64 + b;
                 let slot = c * CHUNK + local;
+                if !tv.keeps(slot) {
+                    continue;
+                }
                 // Grid point of this entry, and where its parameters live.
                 let (i, own) = match layout {
                     Layout::Points => (slot, slot),
@@ -273,4 +305,129 @@ pub fn add_tv(
             }
         }
     });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const RES: [usize; 3] = [5, 4, 3];
+
+    /// A bitmap with the first `n` bits set.
+    fn ones(n: usize) -> Vec<u64> {
+        (0..n.div_ceil(64))
+            .map(|w| {
+                if (w + 1) * 64 <= n {
+                    u64::MAX
+                } else {
+                    (1u64 << (n % 64)) - 1
+                }
+            })
+            .collect()
+    }
+
+    /// w · Σ over pairs of active axis neighbours of |xₐ − x_b|², by brute force.
+    fn tv_energy(x: &[f32], active: &dyn Fn(usize) -> bool, stride: usize, w: f32) -> f64 {
+        let [nx, ny, nz] = RES;
+        let mut e = 0.0f64;
+        for i in 0..nx * ny * nz {
+            let (a, b, c) = (i % nx, (i / nx) % ny, i / (nx * ny));
+            let fwd = [(a + 1 < nx, i + 1), (b + 1 < ny, i + nx), (c + 1 < nz, i + nx * ny)];
+            for (ok, j) in fwd {
+                if ok && active(i) && active(j) {
+                    for s in 0..stride {
+                        let d = (x[i * stride + s] - x[j * stride + s]) as f64;
+                        e += w as f64 * d * d;
+                    }
+                }
+            }
+        }
+        e
+    }
+
+    #[test]
+    fn tv_gradient_matches_finite_differences_on_points_and_slots() {
+        let n = RES.iter().product::<usize>();
+        let stride = 2;
+        let mut rng = SplitMix64::new(3);
+        let x: Vec<f32> = (0..n * stride).map(|_| rng.unit() as f32).collect();
+        let w = 0.7;
+        // Every point touched, grid layout.
+        let all = ones(n);
+        let mut g = vec![0.0; n * stride];
+        add_tv(&x, &mut g, stride, RES, &all, Layout::Points, Tv::full(w));
+        let yes = |_: usize| true;
+        for k in [0, 7, 23, 41, 59] {
+            let (mut p, mut m) = (x.clone(), x.clone());
+            p[k] += 1e-2;
+            m[k] -= 1e-2;
+            let fd = (tv_energy(&p, &yes, stride, w) - tv_energy(&m, &yes, stride, w)) / 2e-2;
+            assert!((g[k] as f64 - fd).abs() < 1e-3, "point value {k}: {} vs {fd}", g[k]);
+        }
+        // Per-slot storage with every third point pruned: pruned neighbours
+        // take no part in the energy.
+        let active = |i: usize| i % 3 != 1;
+        let mut bits = vec![0u64; n.div_ceil(64)];
+        for i in (0..n).filter(|&i| active(i)) {
+            bits[i >> 6] |= 1 << (i & 63);
+        }
+        let slots = Slots::new(RES, &bits);
+        let xs: Vec<f32> = slots
+            .voxels
+            .iter()
+            .flat_map(|&v| x[v as usize * stride..(v as usize + 1) * stride].to_vec())
+            .collect();
+        let touched = ones(slots.len());
+        let mut gs = vec![0.0; xs.len()];
+        add_tv(&xs, &mut gs, stride, RES, &touched, Layout::Slots(&slots), Tv::full(w));
+        for (s, &v) in slots.voxels.iter().enumerate().step_by(5) {
+            let k = v as usize * stride + 1;
+            let (mut p, mut m) = (x.clone(), x.clone());
+            p[k] += 1e-2;
+            m[k] -= 1e-2;
+            let fd = (tv_energy(&p, &active, stride, w) - tv_energy(&m, &active, stride, w)) / 2e-2;
+            assert!(
+                (gs[s * stride + 1] as f64 - fd).abs() < 1e-3,
+                "slot {s}: {} vs {fd}",
+                gs[s * stride + 1]
+            );
+        }
+    }
+
+    #[test]
+    fn sampled_tv_is_the_full_tv_in_expectation() {
+        let n = RES.iter().product::<usize>();
+        let mut rng = SplitMix64::new(5);
+        let x: Vec<f32> = (0..n).map(|_| rng.unit() as f32).collect();
+        let all = ones(n);
+        let mut full = vec![0.0; n];
+        add_tv(&x, &mut full, 1, RES, &all, Layout::Points, Tv::full(1.0));
+        let mut mean = vec![0.0f64; n];
+        let trials = 4000;
+        let mut kept = 0usize;
+        for seed in 0..trials {
+            let mut g = vec![0.0; n];
+            let tv = Tv {
+                weight: 1.0,
+                keep: 0.25,
+                seed: SplitMix64::new(seed).next_u64(),
+            };
+            add_tv(&x, &mut g, 1, RES, &all, Layout::Points, tv);
+            kept += g.iter().filter(|v| **v != 0.0).count();
+            for (m, v) in mean.iter_mut().zip(&g) {
+                *m += *v as f64 / trials as f64;
+            }
+        }
+        let frac = kept as f64 / (trials as usize * n) as f64;
+        assert!(
+            (frac - 0.25).abs() < 0.01,
+            "a quarter of the points each step, got {frac}"
+        );
+        for (m, f) in mean.iter().zip(&full) {
+            assert!(
+                (m - *f as f64).abs() < 0.1 * f.abs().max(0.5) as f64,
+                "mean {m} vs full {f}"
+            );
+        }
+    }
 }

@@ -5,7 +5,7 @@
 
 use super::march::{backward, forward, GradBuf, MarchOpts, RayOut, Scratch};
 use super::model::{res_for, Model, PRUNED_RAW};
-use super::optim::{adam_step, add_tv, corrected_lr, dense_adam_step, merge_marks, AdamParams, Layout, Moments};
+use super::optim::{adam_step, add_tv, corrected_lr, dense_adam_step, merge_marks, AdamParams, Layout, Moments, Tv};
 use super::rays::RaySet;
 use super::teacher::FeatureMaps;
 use super::vm::{VmAppearance, VmShape};
@@ -64,6 +64,9 @@ pub struct TrainConfig {
     pub tv_density: f32,
     pub tv_sh: f32,
     pub tv_features: f32,
+    /// Fraction of the touched voxels whose density and colour TV is taken
+    /// at each iteration (weight divided by it: the same TV in expectation).
+    pub tv_keep: f32,
     pub background: [f32; 3],
     /// Initial box; `None`: [`super::rays::default_bounds`] of the dataset.
     pub bounds: Option<[[f32; 3]; 2]>,
@@ -125,6 +128,7 @@ impl Default for TrainConfig {
             tv_density: 0.0,
             tv_sh: 0.0,
             tv_features: 0.0,
+            tv_keep: 1.0,
             background: [1.0; 3],
             bounds: None,
             seed: 0,
@@ -201,6 +205,11 @@ impl TrainConfig {
             self.feature_guide
         );
         ensure!(
+            self.tv_keep > 0.0 && self.tv_keep <= 1.0,
+            "tv_keep must be in (0, 1], got {}",
+            self.tv_keep
+        );
+        ensure!(
             self.background.iter().all(|c| c.is_finite()),
             "background must be finite"
         );
@@ -238,6 +247,11 @@ pub struct StepStats {
     pub rays: usize,
     pub samples: u64,
     pub seconds: f32,
+    /// Of `seconds`, the optimizer's share (TV and Adam over the touched
+    /// voxels); the rest is marching rays forward and backward. Not kept in
+    /// checkpoints (0 after a resume).
+    #[serde(default)]
+    pub update_seconds: f32,
 }
 
 /// Optimizer state.
@@ -400,7 +414,12 @@ impl Trainer {
                 }
             }
             let geom = GridGeom::new(bounds, res_for(bounds, res, self.config.axis_scale));
-            let resampled = self.model.resampled(geom)?;
+            let mut resampled = self.model.resampled(geom)?;
+            // The margin kept above is `prune_dilate` voxels of the coarse
+            // grid, twice or more as many fine ones: prune again at the new
+            // resolution so that memory and the optimizer's work follow
+            // the occupied space (fern at 512: 43 % of the grid active).
+            resampled.prune(step_of(&geom), self.config.prune_alpha, self.config.prune_dilate);
             self.model = match self.config.appearance {
                 AppearanceKind::Sh => resampled.with_degree(self.config.sh_degree),
                 AppearanceKind::Vm => resampled,
@@ -521,7 +540,9 @@ impl Trainer {
                 (se, fe, ns)
             })
             .collect();
+        let t_update = Instant::now();
         self.optimize(features)?;
+        let update_seconds = t_update.elapsed().as_secs_f32();
         self.iter += 1;
         let se: f64 = results.iter().map(|r| r.0).sum();
         let fe: f64 = results.iter().map(|r| r.1).sum();
@@ -535,6 +556,7 @@ impl Trainer {
             rays: batch.len(),
             samples: results.iter().map(|r| r.2).sum(),
             seconds: t0.elapsed().as_secs_f32(),
+            update_seconds,
         };
         self.history.push(stats);
         Ok(stats)
@@ -574,6 +596,11 @@ impl Trainer {
         let mut marks: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.sh_marks).collect();
         let sh_touched = merge_marks(&mut marks);
         let res = self.model.geom.res;
+        let tv_sample = Tv {
+            weight: 0.0,
+            keep: cfg.tv_keep,
+            seed: SplitMix64::new(cfg.seed ^ (self.iter as u64).wrapping_mul(0x9E37_79B9)).next_u64(),
+        };
         if !frozen {
             // TV on voxel-scaled density: the weight means the same at every
             // resolution; the gradient w.r.t. raw carries voxel².
@@ -584,7 +611,10 @@ impl Trainer {
                 res,
                 &touched,
                 Layout::SlotGrads(&self.model.slots),
-                cfg.tv_density * voxel * voxel,
+                Tv {
+                    weight: cfg.tv_density * voxel * voxel,
+                    ..tv_sample
+                },
             );
             add_tv(
                 &self.model.sh,
@@ -593,7 +623,10 @@ impl Trainer {
                 res,
                 &sh_touched,
                 Layout::Slots(&self.model.slots),
-                cfg.tv_sh,
+                Tv {
+                    weight: cfg.tv_sh,
+                    ..tv_sample
+                },
             );
         }
         let t = self.opt.t;
@@ -656,7 +689,7 @@ impl Trainer {
                 f.geom.res,
                 &ftouched,
                 Layout::Points,
-                cfg.tv_features,
+                Tv::full(cfg.tv_features),
             );
             let lr_f = corrected_lr(cfg.lr_features * fdecay, t, hp);
             let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.feat).collect();
