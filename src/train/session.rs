@@ -393,11 +393,11 @@ mod tests {
         );
         assert_eq!(
             (fast.iters, fast.res, fast_feat),
-            (base.iters / 2, 192, DEFAULT_FEATURE_ITERS / 2)
+            (base.iters / 2, 336, DEFAULT_FEATURE_ITERS / 2)
         );
         assert_eq!(
             (best.iters, best.res, best_feat),
-            (base.iters * 2, 320, DEFAULT_FEATURE_ITERS * 2)
+            (base.iters * 2, 560, DEFAULT_FEATURE_ITERS * 2)
         );
         assert!(fast.coarse_res <= fast.res);
         // Everything else is the capture's preset.
