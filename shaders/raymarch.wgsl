@@ -47,6 +47,8 @@ struct View {
     atlas: vec4<f32>,
     // the pool's bricks per axis (xyz)
     pool: vec4<u32>,
+    // NDC (forward-facing scenes): 1 when on, near, 2f/W, 2f/H
+    ndc: vec4<f32>,
 };
 
 struct Layer {
@@ -573,6 +575,28 @@ fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {
     return select(hi, lo, c <= vec3<f32>(0.04045));
 }
 
+// The NDC ray (origin, unit direction) of a world ray, as
+// src/camera/ndc.rs `Ndc::ray`: the origin moved along the ray to the near
+// plane z = -near, then both projected.
+fn ndc_ray(o_world: vec3<f32>, d_world: vec3<f32>) -> array<vec3<f32>, 2> {
+    let near = view.ndc.y;
+    let s = view.ndc.zw;
+    let dz = min(d_world.z, -1e-6);
+    let d = vec3<f32>(d_world.xy, dz);
+    let t = -(near + o_world.z) / dz;
+    let o = o_world + t * d;
+    let oz = -near;
+    let origin = vec3<f32>(-s * o.xy / oz, -1.0);
+    let dir = vec3<f32>(-s * (d.xy / dz - o.xy / oz), -2.0 * near / oz);
+    return array<vec3<f32>, 2>(origin, normalize(dir));
+}
+
+// The world point of an NDC point in front of z_ndc = 1 (`Ndc::to_world`).
+fn ndc_to_world(q: vec3<f32>) -> vec3<f32> {
+    let z = 2.0 * view.ndc.y / (q.z - 1.0);
+    return vec3<f32>(-q.xy * z / view.ndc.zw, z);
+}
+
 // The march writes to two textures that the composite pass
 // (shaders/composite.wgsl) draws into the view: the colour (linear) and
 // the clip-space depth.
@@ -589,8 +613,15 @@ fn fragment(@builtin(position) pos: vec4<f32>) -> MarchOutput {
     let kk = view.intrinsics;
     let d_cam = vec3<f32>((uv.x - kk.z) / kk.x, -(uv.y - kk.w) / kk.y, -1.0);
     let c2w = view.c2w;
-    let dir = normalize(mat3x3<f32>(c2w[0].xyz, c2w[1].xyz, c2w[2].xyz) * d_cam);
-    let origin = c2w[3].xyz;
+    let world_dir = normalize(mat3x3<f32>(c2w[0].xyz, c2w[1].xyz, c2w[2].xyz) * d_cam);
+    var origin = c2w[3].xyz;
+    var dir = world_dir;
+    let ndc = view.ndc.x > 0.5;
+    if ndc {
+        let r = ndc_ray(origin, world_dir);
+        origin = r[0];
+        dir = r[1];
+    }
     let n = min(view.counts.x, MAX_LAYERS);
     let min_t = view.march.y;
 
@@ -670,8 +701,16 @@ fn fragment(@builtin(position) pos: vec4<f32>) -> MarchOutput {
     // (reverse-Z: 0 is infinitely far).
     out.depth = vec4<f32>(0.0);
     if t_half > 0.0 {
-        let clip = view.clip_from_world * vec4<f32>(origin + t_half * dir, 1.0);
-        out.depth = vec4<f32>(clamp(clip.z / clip.w, 0.0, 1.0));
+        var p = origin + t_half * dir;
+        var finite = true;
+        if ndc {
+            finite = p.z < 1.0 - 1e-6;
+            p = ndc_to_world(p);
+        }
+        let clip = view.clip_from_world * vec4<f32>(p, 1.0);
+        if finite {
+            out.depth = vec4<f32>(clamp(clip.z / clip.w, 0.0, 1.0));
+        }
     }
     return out;
 }

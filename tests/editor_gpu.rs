@@ -111,6 +111,58 @@ fn gpu_matches_cpu_on_the_tabletop_and_a_composition() {
     assert!(psnr(&want, &want2) < 40.0, "moving the mug changed nothing");
 }
 
+/// Forward-facing captures (LLFF) live in NDC space: a camera with NDC
+/// marches the scene along NDC rays, on the GPU as on the CPU, from the
+/// reference pose and from one moved off it, with SH appearance (whose
+/// direction is the NDC ray's) and a mask.
+#[test]
+fn gpu_matches_cpu_for_ndc_cameras() {
+    if skip() {
+        return;
+    }
+    let (d, _) = demo();
+    let mug = Arc::new(d.labels.mask(d.labels.label_of("mug").unwrap()));
+    let field = Arc::new(sparse_sh(&d.field));
+    let b = field.bounds();
+    eprintln!("NDC test field bounds {:?} .. {:?}", b.min, b.max);
+    let ndc = isrf::camera::Ndc::new(0.9 * W as f32, W, H);
+    let k = Intrinsics::from_fov_x(W, H, 2.0 * (0.5 / 0.9f32).atan());
+    let reference = Camera::new(k, Affine3A::IDENTITY).with_ndc(Some(ndc));
+    let moved = Camera::new(
+        k,
+        Affine3A::from_rotation_translation(Quat::from_rotation_y(0.08), Vec3::new(0.15, -0.05, 0.1)),
+    )
+    .with_ndc(Some(ndc));
+    let mut r = HeadlessRenderer::new(W, H).unwrap();
+    let mut rest = Layer::new(field.clone());
+    rest.mask = Mask::Remove(mug.clone());
+    let mut lifted = Layer::new(field.clone());
+    lifted.mask = Mask::Keep(mug);
+    lifted.to_world = Affine3A::from_translation(Vec3::new(0.0, 0.2, 0.0));
+    for (what, scene) in [
+        ("plain", Scene::single(field.clone())),
+        ("mug lifted", Scene::new(vec![rest, lifted])),
+    ] {
+        for (name, cam) in [("reference", &reference), ("moved", &moved)] {
+            let gpu = r.render(Arc::new(scene.clone()), cam).unwrap();
+            let want = cpu(&scene, cam);
+            let p = psnr(&gpu, &want);
+            eprintln!("NDC {what}, {name} camera: PSNR {p:.2} dB");
+            assert!(p >= MIN_PSNR, "NDC {what} {name}: PSNR {p:.2} dB < {MIN_PSNR}");
+            let bg = want.iter().filter(|c| (**c - Vec3::ONE).length() < 1e-3).count();
+            eprintln!(
+                "  background {:.1} % of the pixels",
+                100.0 * bg as f64 / want.len() as f64
+            );
+            assert!(bg < want.len() * 9 / 10, "the NDC view shows mostly background");
+        }
+    }
+    // The same camera without NDC sees the field differently (NDC mattered).
+    let plain = Scene::single(field);
+    let pinhole = r.render(Arc::new(plain.clone()), &Camera::new(k, moved.c2w)).unwrap();
+    assert!(psnr(&pinhole, &cpu(&plain, &moved)) < 30.0, "NDC changed nothing");
+}
+
 /// 27 SH channels per slot whose DC term gives `rgb` and whose higher
 /// terms add a view-dependent ripple, so that direction handling matters.
 fn sh_from_rgb(rgb: [f32; 3], seed: f32) -> Vec<half::f16> {

@@ -115,7 +115,8 @@ impl HeadlessRenderer {
     }
 
     /// Points the bevy camera like `camera` (its intrinsics must match this
-    /// renderer's image size).
+    /// renderer's image size); an NDC camera (forward-facing capture) makes
+    /// the scene's space its NDC space.
     pub fn set_camera(&mut self, camera: &Camera) -> Result<()> {
         let k = camera.intrinsics;
         crate::ensure!(
@@ -126,10 +127,9 @@ impl HeadlessRenderer {
             self.width,
             self.height
         );
-        crate::ensure!(
-            camera.ndc.is_none(),
-            "the GPU view does not render NDC (forward-facing) cameras yet"
-        );
+        // A camera with NDC marches the scene in its NDC space, as the CPU
+        // renderer does.
+        self.app.world_mut().resource_mut::<MarchScene>().ndc = camera.ndc;
         let mut e = self.app.world_mut().entity_mut(self.camera);
         let render_scale = e.get::<RayMarchCamera>().map_or(1.0, |c| c.render_scale);
         e.insert((

@@ -59,7 +59,8 @@ impl Ndc {
             )))
         }
     }
-    fn scale(&self) -> (f32, f32) {
+    /// The x and y scales 2f/W and 2f/H.
+    pub fn scale(&self) -> (f32, f32) {
         (
             2.0 * self.focal / self.width as f32,
             2.0 * self.focal / self.height as f32,

@@ -317,6 +317,7 @@ struct SceneInputs {
     mode: OverlayMode,
     background: [f32; 3],
     step_scale: f32,
+    ndc: Option<crate::camera::Ndc>,
 }
 
 type EditorCamQuery<'w, 's> = Query<
@@ -338,11 +339,11 @@ fn aim_once(sync: &mut SceneSync, state: &EditorState, es: &EditorSession, cams:
     let (Some((_, cam)), Ok((mut t, mut p, mut pan))) = (state.capture_cameras.first(), cams.single_mut()) else {
         return;
     };
-    let center = es
-        .state
-        .fields
-        .first()
-        .map_or(Vec3::ZERO, |f| to_bevy_vec3(f.field.bounds().center()));
+    // The field's centre in the world (NDC fields: mapped back from NDC).
+    let center = es.state.fields.first().map_or(Vec3::ZERO, |f| {
+        let c = f.field.bounds().center();
+        to_bevy_vec3(state.ndc.and_then(|n| n.to_world(c)).unwrap_or(c))
+    });
     let depth = (center - to_bevy_vec3(cam.position())).dot(to_bevy_vec3(cam.forward()));
     camera::snap_to(cam, depth, &mut t, &mut p, &mut pan);
     sync.aimed = true;
@@ -386,6 +387,7 @@ fn scene_inputs(
         },
         background: state.background,
         step_scale: state.step_scale,
+        ndc: state.ndc,
     }
 }
 
@@ -410,6 +412,7 @@ pub fn sync_scene(
     march.scene = Some(Arc::new(scene));
     march.overlay = overlay;
     march.step = step;
+    march.ndc = inputs.ndc;
     sync.builds += 1;
     sync.built_from = Some(inputs);
 }

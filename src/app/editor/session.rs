@@ -367,7 +367,11 @@ pub fn sync_entities(
                 e
             }
             None => {
-                state.capture_cameras.extend(capture_views(f));
+                let views = capture_views(f);
+                if st.fields.first().is_some_and(|first| first.id == f.id) {
+                    state.ndc = views.first().and_then(|(_, c)| c.ndc);
+                }
+                state.capture_cameras.extend(views);
                 spawn_named(&mut commands, &f.name, (layer, t))
             }
         };
@@ -450,8 +454,10 @@ fn relabel(commands: &mut Commands, e: Entity, n: &mut Mut<SessionName>, name: &
 /// The views of the capture a field comes from, placed with the field: a
 /// demo's stroke view and orbit; for a file, `isrf train`'s
 /// `<stem>.cameras.json`, else a transforms.json beside the file.
-/// Forward-facing captures' cameras see the field through NDC, which a
-/// pinhole view cannot show, so only plain ones count.
+/// Forward-facing captures' cameras keep their NDC (the view then maps its
+/// rays into it, [`super::state::EditorState::ndc`]); their poses are in
+/// the world, not in the NDC space the field's placement moves, so they
+/// stay where the capture put them.
 fn capture_views(f: &crate::command::state::FieldEntry) -> Vec<(String, crate::camera::Camera)> {
     let views: Vec<(String, crate::camera::Camera)> = if let Some(d) = &f.demo {
         std::iter::once(("stroke view".to_string(), d.stroke_camera))
@@ -459,7 +465,7 @@ fn capture_views(f: &crate::command::state::FieldEntry) -> Vec<(String, crate::c
             .collect()
     } else if let crate::command::FieldSource::File(p) = &f.source {
         crate::camera::set::capture_cameras(p)
-            .map(|set| set.frames.into_iter().filter(|c| c.camera.ndc.is_none()))
+            .map(|set| set.frames)
             .into_iter()
             .flatten()
             .map(|c| (c.name, c.camera))
@@ -470,7 +476,9 @@ fn capture_views(f: &crate::command::state::FieldEntry) -> Vec<(String, crate::c
     views
         .into_iter()
         .map(|(n, mut c)| {
-            c.c2w = f.placement.transform * c.c2w;
+            if c.ndc.is_none() {
+                c.c2w = f.placement.transform * c.c2w;
+            }
             (format!("{}: {n}", f.name), c)
         })
         .collect()

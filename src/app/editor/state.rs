@@ -102,6 +102,10 @@ pub struct EditorState {
     pub last_timings: Option<Timings>,
     /// Views of the capture (snap targets).
     pub capture_cameras: Vec<(String, Camera)>,
+    /// The NDC space the scene lives in when the session's first field
+    /// comes from a forward-facing capture (LLFF): the view maps its rays
+    /// there, as the capture's cameras did in training.
+    pub ndc: Option<crate::camera::Ndc>,
     /// Path typed in the file menu.
     pub path_input: String,
     /// Select this object once the session has it (after a stroke made it).
@@ -131,6 +135,7 @@ impl Default for EditorState {
             errors: Vec::new(),
             last_timings: None,
             capture_cameras: Vec::new(),
+            ndc: None,
             path_input: String::new(),
             pending_select: None,
             rename: None,

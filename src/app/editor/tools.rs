@@ -6,7 +6,7 @@
 use super::camera::EditorCamera;
 use super::session::EditorSession;
 use super::state::{CurrentStroke, EditorState, GizmoView, Handle, StrokeMsg, Tool, TransformDrag, TransformMode};
-use crate::app::convert::camera_from_bevy;
+use crate::app::convert::{camera_from_bevy, from_bevy_vec3, to_bevy_vec3};
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
 use crate::command::{Edit, TransformSpec};
 use crate::segment::Polarity;
@@ -22,6 +22,38 @@ pub fn view_camera(cam: &Camera, t: &GlobalTransform, proj: &Projection) -> Opti
     };
     let size = cam.physical_viewport_size()?;
     Some(camera_from_bevy(&t.compute_transform(), p.fov, size.x, size.y))
+}
+
+/// The scene's space seen from the view's world (where the bevy camera
+/// lives): the same for pinhole scenes; for forward-facing captures the
+/// NDC space the fields live in ([`EditorState::ndc`]).
+#[derive(Clone, Copy, Debug)]
+pub struct SceneSpace(pub Option<crate::camera::Ndc>);
+
+impl SceneSpace {
+    /// Window position of a scene point (`None` behind the camera).
+    pub fn to_screen(&self, cam: &Camera, cam_t: &GlobalTransform, p: Vec3) -> Option<Vec2> {
+        let world = match &self.0 {
+            Some(n) => to_bevy_vec3(n.to_world(from_bevy_vec3(p))?),
+            None => p,
+        };
+        cam.world_to_viewport(cam_t, world).ok()
+    }
+    /// The scene-space ray (origin, unit direction) under a window position.
+    pub fn ray(&self, cam: &Camera, cam_t: &GlobalTransform, p: Vec2) -> Option<(Vec3, Vec3)> {
+        let r = cam.viewport_to_world(cam_t, p).ok()?;
+        let (o, d) = (r.origin, r.direction.as_vec3());
+        Some(match &self.0 {
+            Some(n) => {
+                let q = n.ray(&crate::camera::Ray {
+                    origin: from_bevy_vec3(o),
+                    dir: from_bevy_vec3(d),
+                });
+                (to_bevy_vec3(q.origin), to_bevy_vec3(q.dir))
+            }
+            None => (o, d),
+        })
+    }
 }
 
 /// Cursor in physical pixels relative to the camera's viewport.
@@ -73,6 +105,7 @@ pub fn brush(
         stroke.screen.clear();
         match view_camera(cam, gt, proj) {
             Some(camera) => {
+                let camera = camera.with_ndc(state.ndc);
                 out.write(StrokeMsg {
                     camera,
                     points,
@@ -291,9 +324,13 @@ pub fn gizmo(
         return;
     }
     let center = object_center(obj, t, field, field_t);
-    // World length of the arrows: their screen size at the object's depth.
-    let scale = 0.25 * (center - cam_t.translation()).length().max(1e-3);
-    let to_screen = |p| cam.world_to_viewport(cam_t, p).ok();
+    let space = SceneSpace(state.ndc);
+    let to_screen = |p| space.to_screen(cam, cam_t, p);
+    // Length of the arrows: their screen size at the object's depth.
+    let Some((eye, _)) = to_screen(center).and_then(|c| space.ray(cam, cam_t, c)) else {
+        return;
+    };
+    let scale = 0.25 * (center - eye).length().max(1e-3);
     let Some((c, tips)) = gizmo_arrows(to_screen, center, scale) else {
         return;
     };
@@ -423,16 +460,18 @@ pub fn transform_modes(
     }
     let Ok((cam, cam_t)) = cams.single() else { return };
     let center = object_center(obj, &drag.start, field, field_t);
-    // Window coordinates, like the cursor (bevy includes the viewport offset).
-    let ray = |p: Vec2| {
-        cam.viewport_to_world(cam_t, p)
-            .ok()
-            .map(|r| (r.origin, r.direction.as_vec3()))
-    };
+    // Window coordinates, like the cursor (bevy includes the viewport
+    // offset); rays in the scene's space.
+    let space = SceneSpace(state.ndc);
+    let ray = |p: Vec2| space.ray(cam, cam_t, p);
     let (Some(r0), Some(r1)) = (ray(drag.cursor0), ray(cursor)) else {
         return;
     };
-    let fwd = cam_t.forward().as_vec3();
+    // The line of sight through the object's centre.
+    let center_px = space.to_screen(cam, cam_t, center);
+    let Some((_, fwd)) = center_px.and_then(ray) else {
+        return;
+    };
     let axis = drag.axis.map(|i| Vec3::AXES[i]);
     let about_center = |m: Mat4| Mat4::from_translation(center) * m * Mat4::from_translation(-center);
     let w = match drag.mode {
@@ -444,10 +483,10 @@ pub fn transform_modes(
                 let (Some(sa), Some(sb)) = (s(r0), s(r1)) else { return };
                 Mat4::from_translation(axis * (sb - sa))
             } else {
-                // Free: the cursor delta at the object's depth, in the view plane.
-                let depth = (center - cam_t.translation()).dot(fwd);
-                let at_depth = |r: (Vec3, Vec3)| r.0 + r.1 * (depth / r.1.dot(fwd));
-                Mat4::from_translation(at_depth(r1) - at_depth(r0))
+                // Free: the cursor delta on the plane through the object's
+                // centre facing the line of sight.
+                let on_plane = |r: (Vec3, Vec3)| r.0 + r.1 * ((center - r.0).dot(fwd) / r.1.dot(fwd));
+                Mat4::from_translation(on_plane(r1) - on_plane(r0))
             }
         }
         TransformMode::Rotate => {
@@ -460,7 +499,7 @@ pub fn transform_modes(
         }
         TransformMode::Scale => {
             let s = if drag.gizmo {
-                let c = cam.world_to_viewport(cam_t, center).unwrap_or(drag.cursor0);
+                let c = center_px.unwrap_or(drag.cursor0);
                 scale_factor(c, drag.cursor0, cursor)
             } else {
                 ((cursor - drag.cursor0).x * 0.005).exp()

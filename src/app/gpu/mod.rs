@@ -60,6 +60,11 @@ pub struct MarchScene {
     /// Sample spacing along each ray (the CPU renderer's default: half a cell).
     pub step: Step,
     pub min_transmittance: f32,
+    /// The NDC space of a forward-facing capture (LLFF): when set, every
+    /// pixel's world ray is mapped into it (as [`crate::camera::Camera::ray`]
+    /// does for a camera with NDC) and the scene is marched there, since
+    /// such fields live in NDC space.
+    pub ndc: Option<crate::camera::Ndc>,
     /// Bytes of GPU memory the pool textures may take; beyond it the view
     /// shows a coarser level of detail ([`pool::plan`]).
     pub memory_budget: usize,
@@ -80,6 +85,7 @@ impl Default for MarchScene {
             overlay: Vec::new(),
             step: Step::default(),
             min_transmittance: 1e-4,
+            ndc: None,
             memory_budget: default_memory_budget(),
         }
     }
@@ -445,6 +451,8 @@ struct GpuSceneCache {
     step: Step,
     background: [f32; 4],
     min_transmittance: f32,
+    /// [`pack::ndc_params`] of the scene's NDC space.
+    ndc: [f32; 4],
     scene_ptr: usize,
     /// Bumped whenever grids or bitmaps are uploaded (views re-march).
     generation: u64,
@@ -854,7 +862,11 @@ fn update_cache(
     update_bitmaps(cache, bitmaps, &offs, total, device, queue, status)?;
     // Layers: small, repacked every frame.
     let mut layers = pack::pack_layers(scene, &wanted, &cache.bitmaps, &offs, &march.overlay)?;
-    pack::mark_baked(&mut layers, &cache.field_infos);
+    // The bake evaluates SH for rays from one eye point; NDC rays have none
+    // (the eye maps to infinity), so NDC scenes evaluate SH per sample.
+    if march.ndc.is_none() {
+        pack::mark_baked(&mut layers, &cache.field_infos);
+    }
     let bytes: &[u8] = bytemuck::cast_slice(&layers);
     let fits = cache
         .layer_buffer
@@ -871,6 +883,7 @@ fn update_cache(
     let bg = scene.background;
     cache.background = [bg.x, bg.y, bg.z, 1.0];
     cache.min_transmittance = march.min_transmittance;
+    cache.ndc = pack::ndc_params(march.ndc.as_ref());
     cache.scene_ptr = Arc::as_ptr(scene) as usize;
     let generation = cache.generation;
     status.update(|s| {

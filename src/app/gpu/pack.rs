@@ -66,6 +66,16 @@ pub struct GpuView {
     pub atlas: [f32; 4],
     /// The pool's bricks per axis (xyz), 0.
     pub pool: [u32; 4],
+    /// [`ndc_params`]: 1 (NDC on), near, x and y scales; zeros when off.
+    pub ndc: [f32; 4],
+}
+
+/// The view uniform's NDC parameters: 1 (on), near, 2f/W, 2f/H.
+pub fn ndc_params(ndc: Option<&crate::camera::Ndc>) -> [f32; 4] {
+    ndc.map_or([0.0; 4], |n| {
+        let (sx, sy) = n.scale();
+        [1.0, n.near, sx, sy]
+    })
 }
 
 /// The SH bake's parameters for one view (uniform, shaders/sh_bake.wgsl).

@@ -218,6 +218,7 @@ fn gpu_view(view: &ExtractedView, cam: &RayMarchCamera, cache: &GpuSceneCache, s
             let b = a.bricks.map(|n| n as u32);
             [b[0], b[1], b[2], 0]
         }),
+        ndc: cache.ndc,
     }
 }
 
