@@ -84,6 +84,19 @@ impl Ndc {
         let z = 2.0 * self.near / (q.z - 1.0);
         Some(Vec3::new(-q.x * z / sx, -q.y * z / sy, z))
     }
+    /// The pinhole that defines this NDC space: at the origin, looking
+    /// down −z, producing NDC rays.
+    pub fn reference_camera(&self) -> super::Camera {
+        let k = super::Intrinsics {
+            width: self.width,
+            height: self.height,
+            fx: self.focal,
+            fy: self.focal,
+            cx: 0.5 * self.width as f32,
+            cy: 0.5 * self.height as f32,
+        };
+        super::Camera::new(k, glam::Affine3A::IDENTITY).with_ndc(Some(*self))
+    }
     /// The NDC ray of a world ray: origin moved along the ray to the near
     /// plane, then both projected (NeRF's `ndc_rays`), direction normalised.
     /// The ray starts at z_ndc = −1 and reaches z_ndc = 1 at world infinity.

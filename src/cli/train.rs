@@ -355,11 +355,15 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
 
 fn finish(session: &Session, a: &Args, ckpt: &Path) -> Result<()> {
     let t = &session.trainer;
-    let field = Arc::new(if a.dense_field {
+    let mut field = if a.dense_field {
         t.model.to_field()
     } else {
         t.model.to_sparse_field()
-    });
+    };
+    // A forward-facing capture's field lives in its NDC space; the file
+    // says so, so that every view (editor, render) sees it through it.
+    field.ndc = session.dataset.cameras.frames.first().and_then(|f| f.camera.ndc);
+    let field = Arc::new(field);
     field.save(&a.out)?;
     let file_bytes = std::fs::metadata(&a.out).map_or(0, |m| m.len());
     session.save_checkpoint(ckpt)?;

@@ -119,7 +119,7 @@ pub fn object_field(field: &Field, bitmap: &Bitmap, margin_voxels: usize) -> Res
         Some(Features::Vm(v)) => Some(Features::Vm(crop_vm(v, &cb))),
         None => None,
     };
-    Ok(Field::new(density, appearance, features, occupancy))
+    Ok(Field::new(density, appearance, features, occupancy).in_space_of(field))
 }
 
 /// Flat index in the full grid of sub-grid point `i`.

@@ -131,7 +131,8 @@ pub fn vm_to_sh(field: &Field) -> Result<Field> {
         Appearance::Sh2(ChannelGrid::sparse(geom, 3 * SH_COEFFS, index.clone(), data)),
         field.features.clone(),
         Some(index),
-    ))
+    )
+    .in_space_of(field))
 }
 
 #[cfg(test)]

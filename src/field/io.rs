@@ -28,6 +28,10 @@
 //! quantisation error (≤ max|channel| / 254 per channel) is far below the
 //! differences it decides on.
 //!
+//! The header's optional `ndc` (`{near, focal, width, height}`) says the
+//! field lives in the NDC space of a forward-facing capture
+//! (`crate::camera::Ndc`), as `isrf train` writes for LLFF scenes.
+//!
 //! The header's optional `source` names the 3D Gaussian splat file an
 //! imported field came from (path, CRC-32, count; `crate::splat`); readers
 //! that predate it ignore it.
@@ -155,6 +159,10 @@ pub struct Header {
     /// The splat file an imported field came from (readers before it ignore it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub source: Option<super::Source>,
+    /// The NDC space of a field trained on a forward-facing capture
+    /// ([`super::Field::ndc`]; readers before it ignore it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ndc: Option<crate::camera::Ndc>,
 }
 
 impl Header {
@@ -446,6 +454,7 @@ fn plan(field: &Field, feature_storage: Storage) -> Result<(Out<'_>, Header)> {
         density,
         feature_occupied,
         source: field.source.clone(),
+        ndc: field.ndc,
     };
     Ok((out, header))
 }
@@ -777,6 +786,9 @@ fn validate_header(h: &Header) -> Result<()> {
         h.bounds
     );
     check_res(h.resolution, "density grid")?;
+    if let Some(n) = &h.ndc {
+        n.validate()?;
+    }
     let chan = |c: &ChannelHeader, what: &str| -> Result<()> {
         check_res(c.resolution, what)?;
         crate::ensure!(
@@ -1082,6 +1094,7 @@ pub fn load(path: &Path) -> Result<Field> {
         occupancy,
     );
     field.source = h.source;
+    field.ndc = h.ndc;
     Ok(field)
 }
 

@@ -73,6 +73,10 @@ pub struct Field {
     pub occupancy: Option<Arc<RankIndex>>,
     /// Where an imported field came from (kept in the file's header).
     pub source: Option<Source>,
+    /// The NDC space of the forward-facing capture (LLFF) the field was
+    /// trained in: its coordinates are NDC, not the world, and views see it
+    /// through this mapping (kept in the file's header).
+    pub ndc: Option<crate::camera::Ndc>,
     cache: OnceLock<Arc<FeatureCache>>,
     macro_grid: OnceLock<MacroGrid>,
     /// This field with VM appearance baked into SH (GPU view), on first use.
@@ -87,6 +91,7 @@ impl Clone for Field {
             features: self.features.clone(),
             occupancy: self.occupancy.clone(),
             source: self.source.clone(),
+            ndc: self.ndc,
             cache: OnceLock::new(),
             macro_grid: OnceLock::new(),
             baked: OnceLock::new(),
@@ -107,10 +112,17 @@ impl Field {
             features,
             occupancy,
             source: None,
+            ndc: None,
             cache: OnceLock::new(),
             macro_grid: OnceLock::new(),
             baked: OnceLock::new(),
         }
+    }
+    /// This field in the same space as `other` (its NDC, if any): for
+    /// fields derived from another (cropped, sparsified, baked, lifted).
+    pub fn in_space_of(mut self, other: &Field) -> Field {
+        self.ndc = other.ndc;
+        self
     }
     pub fn bounds(&self) -> Aabb {
         self.density.geom.bounds

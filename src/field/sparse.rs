@@ -137,5 +137,5 @@ pub fn sparsify(field: &Field) -> Result<Field> {
         }
         other => other.clone(),
     };
-    Ok(Field::new(density, appearance, features, Some(index)))
+    Ok(Field::new(density, appearance, features, Some(index)).in_space_of(field))
 }

@@ -369,7 +369,7 @@ pub fn sync_entities(
             None => {
                 let views = capture_views(f);
                 if st.fields.first().is_some_and(|first| first.id == f.id) {
-                    state.ndc = views.first().and_then(|(_, c)| c.ndc);
+                    state.ndc = f.field.ndc.or_else(|| views.first().and_then(|(_, c)| c.ndc));
                 }
                 state.capture_cameras.extend(views);
                 spawn_named(&mut commands, &f.name, (layer, t))
@@ -472,6 +472,12 @@ fn capture_views(f: &crate::command::state::FieldEntry) -> Vec<(String, crate::c
             .collect()
     } else {
         vec![]
+    };
+    // An NDC field without its capture's cameras (an exported object) is
+    // seen from the NDC's reference view.
+    let views = match (views.is_empty(), f.field.ndc) {
+        (true, Some(n)) => vec![("reference view".to_string(), n.reference_camera())],
+        _ => views,
     };
     views
         .into_iter()
