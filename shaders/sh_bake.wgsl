@@ -13,6 +13,8 @@
 struct Bake {
     // pool bricks per axis (xyz), pool slots to bake
     pool: vec4<u32>,
+    // NDC scenes (pack.rs `ndc_params`): 1 when on, near, 2f/W, 2f/H
+    ndc: vec4<f32>,
     // per field (pack.rs MAX_LAYERS of them): the camera position in the
     // field's frame, w = 1 where the field is baked
     cams: array<vec4<f32>, 16>,
@@ -35,6 +37,28 @@ struct Bake {
 // pool.rs BRICK_CELLS, BRICK.
 const BRICK_CELLS: u32 = 7u;
 const BRICK: u32 = 8u;
+
+fn direction(v: vec3<f32>) -> vec3<f32> {
+    let len = length(v);
+    return select(vec3<f32>(0.0, 0.0, -1.0), v / len, len > 0.0);
+}
+
+// In an NDC scene (src/camera/ndc.rs) the march's rays are the NDC images
+// of the world rays from the camera (`cam`, world): at NDC point `q`, the
+// direction of the one through the world point P = to_world(q) is the
+// NDC map's Jacobian at P applied to P - cam.
+fn ndc_direction(q: vec3<f32>, cam: vec3<f32>) -> vec3<f32> {
+    if q.z >= 1.0 - 1e-6 {
+        return vec3<f32>(0.0, 0.0, 1.0);
+    }
+    let n = bake.ndc.y;
+    let s = bake.ndc.zw;
+    let z = 2.0 * n / (q.z - 1.0);
+    let p = vec3<f32>(-q.xy * z / s, z);
+    let d = p - cam;
+    let j = vec3<f32>(-s * (d.xy / z - p.xy * d.z / (z * z)), -2.0 * n * d.z / (z * z));
+    return direction(j);
+}
 
 @compute @workgroup_size(64)
 fn bake_colours(
@@ -59,9 +83,10 @@ fn bake_colours(
     let g = min(b * BRICK_CELLS + l, f.res.xyz - vec3<u32>(1u));
     let n = max(vec3<f32>(f.res.xyz) - vec3<f32>(1.0), vec3<f32>(1.0));
     let p = f.bounds_min.xyz + vec3<f32>(g) / n * (f.bounds_max.xyz - f.bounds_min.xyz);
-    let to_p = p - cam;
-    let len = length(to_p);
-    let dir = select(vec3<f32>(0.0, 0.0, -1.0), to_p / len, len > 0.0);
+    var dir = direction(p - cam);
+    if bake.ndc.x > 0.5 {
+        dir = ndc_direction(p, cam);
+    }
     let pb = vec3<u32>(slot % bake.pool.x, slot / bake.pool.x % bake.pool.y, slot / (bake.pool.x * bake.pool.y));
     let texel = vec3<i32>(pb * BRICK + l);
     let t6 = textureLoad(sh6, texel, 0);

@@ -223,7 +223,6 @@ pub fn bench(a: BenchArgs) -> Result<()> {
 #[cfg(feature = "editor")]
 fn bench_field(a: &BenchArgs, path: &std::path::Path) -> Result<()> {
     use isrf::app::headless::HeadlessRenderer;
-    use isrf::camera::{Camera, Intrinsics};
     use isrf::field::Bitmap;
     use isrf::render::Scene;
     use std::sync::Arc;
@@ -246,18 +245,10 @@ fn bench_field(a: &BenchArgs, path: &std::path::Path) -> Result<()> {
     if let Some(info) = r.adapter_info() {
         println!("adapter: {info}");
     }
-    let b = field.bounds();
-    let (centre, size) = ((b.min + b.max) * 0.5, b.max - b.min);
-    let k = Intrinsics::from_fov_x(a.width, a.height, 50f32.to_radians());
-    let dist = 1.3 * size.length();
-    let views: Vec<Camera> = [(-0.5f32, 0.3f32), (0.5, 0.3), (-0.2, -0.2), (0.2, 0.6)]
-        .iter()
-        .map(|&(yaw, pitch)| {
-            // From the -z side: the front of a forward-facing (NDC) field.
-            let dir = glam::Vec3::new(yaw.sin() * pitch.cos(), pitch.sin(), -yaw.cos() * pitch.cos());
-            Camera::look_at(k, centre + dir * dist, centre, glam::Vec3::Y)
-        })
-        .collect();
+    let views = match field.ndc {
+        Some(n) => ndc_views(n, a.width, a.height),
+        None => orbit_views(field.bounds(), a.width, a.height),
+    };
     // The object: occupied voxels in the central eighth of the box.
     let mid = |i: usize, a: usize| (res[a] / 4..3 * res[a] / 4).contains(&i);
     let mask = Arc::new(Bitmap::from_fn(res, |v| {
@@ -296,6 +287,42 @@ fn bench_field(a: &BenchArgs, path: &std::path::Path) -> Result<()> {
     }
     println!("fps: {full_fps:.2}");
     Ok(())
+}
+
+/// Four views around a field's box, from the −z side.
+#[cfg(feature = "editor")]
+fn orbit_views(b: isrf::field::Aabb, width: u32, height: u32) -> Vec<isrf::camera::Camera> {
+    use isrf::camera::{Camera, Intrinsics};
+    let (centre, size) = ((b.min + b.max) * 0.5, b.max - b.min);
+    let k = Intrinsics::from_fov_x(width, height, 50f32.to_radians());
+    let dist = 1.3 * size.length();
+    [(-0.5f32, 0.3f32), (0.5, 0.3), (-0.2, -0.2), (0.2, 0.6)]
+        .iter()
+        .map(|&(yaw, pitch)| {
+            let dir = glam::Vec3::new(yaw.sin() * pitch.cos(), pitch.sin(), -yaw.cos() * pitch.cos());
+            Camera::look_at(k, centre + dir * dist, centre, glam::Vec3::Y)
+        })
+        .collect()
+}
+
+/// Four views of a forward-facing (NDC) field as its capture saw it: the
+/// NDC's reference pinhole (its field of view, this size), moved and turned
+/// a little, seen through the NDC.
+#[cfg(feature = "editor")]
+fn ndc_views(n: isrf::camera::Ndc, width: u32, height: u32) -> Vec<isrf::camera::Camera> {
+    use isrf::camera::{Camera, Intrinsics};
+    let fov_x = 2.0 * (0.5 * n.width as f32 / n.focal).atan();
+    let k = Intrinsics::from_fov_x(width, height, fov_x);
+    [(-0.05f32, 0.1f32), (0.05, -0.1), (0.0, 0.05), (0.03, 0.0)]
+        .iter()
+        .map(|&(yaw, x)| {
+            let pose = glam::Affine3A::from_rotation_translation(
+                glam::Quat::from_rotation_y(yaw),
+                glam::Vec3::new(x, 0.5 * x, 0.0),
+            );
+            Camera::new(k, pose).with_ndc(Some(n))
+        })
+        .collect()
 }
 
 /// The bench's two-layer scene: an object (`mask`) cut out of the field

@@ -79,6 +79,28 @@ pub(super) fn bake_texture(device: &RenderDevice, size: [usize; 3]) -> TextureVi
 pub(super) struct BakedColours {
     pub size: [usize; 3],
     pub view: TextureView,
+    /// What the last bake was for besides the camera (layers, uploads,
+    /// NDC; see [`scene_key`]); empty before the first.
+    pub scene: Vec<u8>,
+}
+
+/// The inputs of a bake other than the camera position: a moving view may
+/// reuse a bake of the same `scene_key` ([`reuse_while_moving`]).
+pub(super) fn scene_key(layers: &[GpuLayer], generation: u64, ndc: [f32; 4]) -> Vec<u8> {
+    let mut key = bytemuck::cast_slice::<GpuLayer, u8>(layers).to_vec();
+    key.extend_from_slice(&generation.to_le_bytes());
+    key.extend_from_slice(bytemuck::cast_slice(&ndc));
+    key
+}
+
+/// Whether a march may use the view's last bake instead of baking again:
+/// only while the view moves (a reduced-resolution march) and the scene is
+/// the one baked. The bake costs as much as a half-resolution march of a
+/// trained field on lavapipe (it touches every pool texel), and SH colour
+/// changes little over one drag; the full-resolution march at rest bakes
+/// for its exact camera.
+pub(super) fn reuse_while_moving(last: Option<&BakedColours>, scene: &[u8], full_resolution: bool) -> bool {
+    !full_resolution && last.is_some_and(|b| !b.scene.is_empty() && b.scene == scene)
 }
 
 /// This march's bake: its bind group and workgroup counts.
@@ -111,9 +133,13 @@ pub(super) fn job(
     atlas: &AtlasTextures,
     target: &TextureView,
     origin: Vec3,
+    ndc: [f32; 4],
 ) -> BakeJob {
     let origin = glam::Vec3::from_array(origin.to_array());
-    let params = pack::bake_params(layers, atlas.bricks, atlas.slots, origin);
+    let params = GpuBake {
+        ndc,
+        ..pack::bake_params(layers, atlas.bricks, atlas.slots, origin)
+    };
     let uniform = device.create_buffer_with_data(&BufferInitDescriptor {
         label: Some("isrf_sh_bake"),
         contents: bytemuck::bytes_of(&params),

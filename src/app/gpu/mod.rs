@@ -862,11 +862,7 @@ fn update_cache(
     update_bitmaps(cache, bitmaps, &offs, total, device, queue, status)?;
     // Layers: small, repacked every frame.
     let mut layers = pack::pack_layers(scene, &wanted, &cache.bitmaps, &offs, &march.overlay)?;
-    // The bake evaluates SH for rays from one eye point; NDC rays have none
-    // (the eye maps to infinity), so NDC scenes evaluate SH per sample.
-    if march.ndc.is_none() {
-        pack::mark_baked(&mut layers, &cache.field_infos);
-    }
+    pack::mark_baked(&mut layers, &cache.field_infos, march.ndc.is_some());
     let bytes: &[u8] = bytemuck::cast_slice(&layers);
     let fits = cache
         .layer_buffer

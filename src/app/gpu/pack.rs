@@ -84,6 +84,9 @@ pub fn ndc_params(ndc: Option<&crate::camera::Ndc>) -> [f32; 4] {
 pub struct GpuBake {
     /// The pool's bricks per axis (xyz), pool slots to bake.
     pub pool: [u32; 4],
+    /// [`ndc_params`] of an NDC scene: directions are then those of the
+    /// NDC rays through each texel.
+    pub ndc: [f32; 4],
     /// Per field: the camera in the field's frame; w = 1 where baked.
     pub cams: [[f32; 4]; MAX_LAYERS],
 }
@@ -350,13 +353,16 @@ pub fn pool_owners(plan: &PoolPlan) -> Vec<[u32; 2]> {
 /// Flags the layers whose SH colours the view's bake serves: per SH field
 /// the bake uses the camera in the frame of the field's first layer, so
 /// the layers of that field in the same frame share it; a layer moved
-/// away from it (a moved object) keeps evaluating its SH per sample.
-pub fn mark_baked(layers: &mut [GpuLayer], fields: &[GpuField]) {
+/// away from it (a moved object) keeps evaluating its SH per sample. In an
+/// NDC scene (`ndc`) only layers in the scene's own frame are baked: the
+/// bake maps texels between NDC and the world in that frame.
+pub fn mark_baked(layers: &mut [GpuLayer], fields: &[GpuField], ndc: bool) {
     for k in 0..layers.len() {
         let f = layers[k].info[0] as usize;
         let sh = fields.get(f).is_some_and(|g| g.res[3] & COLOR_SH != 0);
         let first = layers.iter().position(|l| l.info[0] as usize == f).unwrap_or(k);
-        if sh && f < MAX_LAYERS && layers[first].to_local == layers[k].to_local {
+        let frame_ok = !ndc || layers[k].to_local == Mat4::IDENTITY.to_cols_array_2d();
+        if sh && f < MAX_LAYERS && layers[first].to_local == layers[k].to_local && frame_ok {
             layers[k].info[3] |= LAYER_BAKED;
         }
     }
@@ -972,7 +978,7 @@ mod tests {
         // Field 0 (SH): the rest in place, an object moved, a second copy
         // in place; field 1 (RGB); field 2 (SH) moved as a whole.
         let mut layers = vec![at(0, 0.0), at(0, 1.0), at(1, 0.0), at(0, 0.0), at(2, 2.0)];
-        mark_baked(&mut layers, &[sh, rgb, sh]);
+        mark_baked(&mut layers, &[sh, rgb, sh], false);
         let baked: Vec<bool> = layers.iter().map(|l| l.info[3] & LAYER_BAKED != 0).collect();
         assert_eq!(baked, [true, false, false, true, true]);
         // Cameras in each baked field's frame (the layers translate by x).

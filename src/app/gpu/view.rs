@@ -350,11 +350,12 @@ pub(super) fn prepare_views(
         // showing its last image (not counted as showing this scene).
         let (mut march, mut bake_job, mut scene_ptr, full) = (None, None, 0, march_ready && size == viewport);
         // The view's baked colours, at the pool's size.
-        let baked = match (cache.atlas.as_ref(), baked) {
+        let mut baked = match (cache.atlas.as_ref(), baked) {
             (Some(a), Some(b)) if !bakes || b.size == a.size => Some(b.clone()),
             (Some(a), _) if bakes => Some(BakedColours {
                 size: a.size,
                 view: bake::bake_texture(&device, a.size),
+                scene: Vec::new(),
             }),
             _ => None,
         };
@@ -368,6 +369,11 @@ pub(super) fn prepare_views(
                 let (Some(atlas), Some(fields)) = (cache.atlas.as_ref(), cache.field_buffer.as_ref()) else {
                     continue;
                 };
+                let scene = bake::scene_key(&cache.layers, cache.generation, gv.ndc);
+                let reuse = bake::reuse_while_moving(baked.as_ref(), &scene, size == viewport);
+                if let Some(b) = baked.as_mut().filter(|_| bakes && !reuse) {
+                    b.scene = scene;
+                }
                 let target = match (&baked, bakes) {
                     (Some(b), true) => &b.view,
                     _ => &atlas.no_bake,
@@ -376,7 +382,7 @@ pub(super) fn prepare_views(
                     continue;
                 };
                 let origin = Vec3::from_slice(&gv.c2w[3][..3]);
-                bake_job = bakes.then(|| {
+                bake_job = (bakes && !reuse).then(|| {
                     let job = bake::job(
                         &device,
                         &pipeline_cache,
@@ -386,6 +392,7 @@ pub(super) fn prepare_views(
                         atlas,
                         target,
                         origin,
+                        gv.ndc,
                     );
                     (job, bake_pipeline.id)
                 });
