@@ -24,6 +24,11 @@ pub enum Error {
         kind: &'static str,
         error: Box<Error>,
     },
+    /// A script step (1-based) that does not parse: an unknown command, a
+    /// misspelt or missing parameter, a value of the wrong type. `message`
+    /// is the parser's, naming the step and where it is in the text.
+    #[error("{message}")]
+    ScriptSyntax { step: usize, message: String },
     /// A field or object name that names nothing; `known` lists what does.
     #[error("no {kind} named '{name}' (there are: {})", list_or_none(.known))]
     UnknownName {
@@ -84,6 +89,14 @@ impl Error {
             step,
             kind,
             error: Box::new(self),
+        }
+    }
+    /// The script step (1-based) an error is about, if any.
+    pub fn step(&self) -> Option<usize> {
+        match self {
+            Error::Step { step, .. } | Error::ScriptSyntax { step, .. } => Some(*step),
+            Error::BadFile { .. } | Error::Io { .. } | Error::Invalid(_) => None,
+            Error::UnknownName { .. } | Error::OutOfRange(_) | Error::DeviceLimit(_) => None,
         }
     }
     /// The error inside any step wrapping (what actually went wrong).

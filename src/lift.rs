@@ -48,7 +48,11 @@ const MIN_WEIGHT: f32 = 1e-3;
 /// Cameras on two rings (elevations 20° and 50°, alternating, +y up)
 /// around the centre of the occupied voxels, far enough to see them all.
 pub fn orbit_cameras(field: &Field, n: usize) -> Result<Vec<Camera>> {
-    crate::ensure!((1..=720).contains(&n), "--orbit {n}: between 1 and 720 views");
+    crate::ensure_within!(
+        OutOfRange,
+        (1..=720).contains(&n),
+        "--orbit {n}: between 1 and 720 views"
+    );
     let geom = field.geom();
     let bits = sparse::density_occupancy(&field.density);
     let (lo, hi) = bits

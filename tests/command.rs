@@ -791,3 +791,44 @@ fn set_params_switches_joined_seeds_and_undo_restores_them() {
     s.undo();
     assert!(s.state().params.connected);
 }
+
+/// A step that does not parse is reported as a syntax error a caller can
+/// match on, with its step number, in RON and JSON, from text and from a
+/// file (whose name the message keeps); text that is not a list at all has
+/// no step.
+#[test]
+fn a_step_that_does_not_parse_is_a_syntax_error_with_its_number() {
+    use isrf::Error;
+    let ron = r#"[load_field(name: "a", source: demo(scene: "tabletop")), strok(object: "p")]"#;
+    let json = r#"[{"load_field": {"name": "a", "source": {"demo": {"scene": "tabletop"}}}},
+                   {"set_params": {"theta": 0.3}},
+                   {"render": {"cameras": {"demo": {"field": "a"}}, "outt": "r"}}]"#;
+    for (text, format, step, word) in [(ron, Format::Ron, 2, "strok"), (json, Format::Json, 3, "outt")] {
+        let e = parse_script(text, format).unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            matches!(&e, Error::ScriptSyntax { step: s, .. } if *s == step),
+            "{format:?}: {e:?}"
+        );
+        assert_eq!(e.step(), Some(step));
+        assert!(
+            msg.starts_with(&format!("step {step}: ")) || msg.contains(&format!("step {step}: ")),
+            "{msg}"
+        );
+        assert!(msg.contains(word), "{msg}");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("typo.ron");
+    std::fs::write(&path, ron).unwrap();
+    let e = load_script(&path).unwrap_err();
+    assert_eq!(e.step(), Some(2), "{e:?}");
+    assert!(
+        e.to_string().contains("typo.ron") && e.to_string().contains("step 2: "),
+        "{e}"
+    );
+    // Not a list of commands: an error, but about no step.
+    let e = parse_script("{ nonsense", Format::Json).unwrap_err();
+    assert_eq!(e.step(), None, "{e:?}");
+    // A later, valid parse does not inherit the failed step.
+    assert!(parse_script("[]", Format::Ron).unwrap().commands.is_empty());
+}

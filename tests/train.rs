@@ -579,3 +579,36 @@ fn vm_appearance_bakes_into_sh_for_the_gpu_view() {
         .fold(0.0, f32::max);
     assert!(spread > 0.05, "{spread}");
 }
+
+/// A training setting out of its range is an out-of-range error a caller
+/// can match on (the CLI and the editor show its message), as is an
+/// absurd grid resolution; other bad settings stay plain invalid input.
+#[test]
+fn training_settings_out_of_range_are_reported_as_such() {
+    use isrf::train::trainer::TrainConfig;
+    use isrf::Error;
+    let bad = [
+        TrainConfig {
+            res: 5000,
+            ..Default::default()
+        },
+        TrainConfig {
+            tv_keep: 0.0,
+            ..Default::default()
+        },
+        TrainConfig {
+            lr_density: f32::NAN,
+            ..Default::default()
+        },
+    ];
+    for c in bad {
+        let e = c.validate().unwrap_err();
+        assert!(matches!(e, Error::OutOfRange(_)), "{e:?}");
+    }
+    TrainConfig::default().validate().unwrap();
+    let e = isrf::field::geom::check_res([100_000, 100_000, 100_000], "density").unwrap_err();
+    assert!(
+        matches!(e, Error::OutOfRange(_)) && e.to_string().contains("absurdly large"),
+        "{e:?}"
+    );
+}

@@ -17,6 +17,13 @@ pub struct Script {
 /// A list of commands whose element errors carry their step number.
 struct Steps(Vec<Command>);
 
+thread_local! {
+    /// The step whose parse failed last on this thread: the parser's error
+    /// type (serde_json's, ron's) cannot carry it, so [`parse_script`]
+    /// reads it here to return [`Error::ScriptSyntax`].
+    static FAILED_STEP: std::cell::Cell<Option<usize>> = const { std::cell::Cell::new(None) };
+}
+
 impl<'de> Deserialize<'de> for Steps {
     fn deserialize<D: Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
         struct V;
@@ -31,7 +38,11 @@ impl<'de> Deserialize<'de> for Steps {
                     match seq.next_element::<Command>() {
                         Ok(Some(c)) => v.push(c),
                         Ok(None) => return Ok(Steps(v)),
-                        Err(e) => return Err(de::Error::custom(format!("step {}: {e}", v.len() + 1))),
+                        Err(e) => {
+                            let step = v.len() + 1;
+                            FAILED_STEP.with(|s| s.set(Some(step)));
+                            return Err(de::Error::custom(format!("step {step}: {e}")));
+                        }
                     }
                 }
             }
@@ -59,8 +70,10 @@ impl Format {
     }
 }
 
-/// Parses a script; errors name the step (1-based) and what is wrong.
+/// Parses a script; errors name the step (1-based) and what is wrong
+/// ([`Error::ScriptSyntax`] when a step does not parse).
 pub fn parse_script(text: &str, format: Format) -> Result<Script> {
+    FAILED_STEP.with(|s| s.set(None));
     // Try the wrapped form only if the text looks like it, so that errors
     // inside a bare list are reported as they are.
     let ron_text = with_implicit_some(text);
@@ -81,7 +94,10 @@ pub fn parse_script(text: &str, format: Format) -> Result<Script> {
             .map_err(|e| e.to_string()),
         (Format::Ron, false) => ron_options().from_str::<Steps>(&ron_text).map_err(|e| e.to_string()),
     }
-    .map_err(Error::invalid)?;
+    .map_err(|message| match FAILED_STEP.with(|s| s.take()) {
+        Some(step) => Error::ScriptSyntax { step, message },
+        None => Error::Invalid(message),
+    })?;
     Ok(Script { commands: steps.0 })
 }
 
@@ -110,7 +126,14 @@ struct WrappedJson {
 
 pub fn load_script(path: &Path) -> Result<Script> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    parse_script(&text, Format::of(path)?).map_err(|e| Error::bad_file(path, e.to_string()))
+    parse_script(&text, Format::of(path)?).map_err(|e| match e {
+        // Still matchable by step, with the file named as for other errors.
+        Error::ScriptSyntax { step, message } => Error::ScriptSyntax {
+            step,
+            message: format!("{}: {message}", path.display()),
+        },
+        e => Error::bad_file(path, e.to_string()),
+    })
 }
 
 /// Writes a script (format from the extension), atomically.

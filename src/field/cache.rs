@@ -33,7 +33,8 @@ pub struct FeatureCache {
 impl FeatureCache {
     pub fn build(field: &Field) -> Result<Self> {
         let geom = field.geom();
-        crate::ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             geom.len() <= u32::MAX as usize,
             "grid {:?} is too large to index",
             geom.res

@@ -174,12 +174,14 @@ impl GridGeom {
 
 /// Checks a resolution read from a file or the command line.
 pub fn check_res(res: [usize; 3], what: &str) -> crate::error::Result<()> {
-    crate::ensure!(
+    crate::ensure_within!(
+        OutOfRange,
         res.iter().all(|&n| n >= 2),
         "{what}: resolution {res:?} must be at least 2 along every axis"
     );
     let total = res.iter().try_fold(1usize, |acc, &n| acc.checked_mul(n));
-    crate::ensure!(
+    crate::ensure_within!(
+        OutOfRange,
         matches!(total, Some(t) if t <= MAX_VOXELS),
         "{what}: resolution {res:?} is absurdly large (more than {MAX_VOXELS} grid points)"
     );

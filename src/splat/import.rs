@@ -202,7 +202,11 @@ fn resolution(b: Aabb, typical: f32, opts: &ImportOptions) -> Result<[usize; 3]>
     let size = b.size();
     let longest = match opts.res {
         Some(r) => {
-            crate::ensure!((8..=2048).contains(&r), "--res {r} is out of range (8..=2048)");
+            crate::ensure_within!(
+                OutOfRange,
+                (8..=2048).contains(&r),
+                "--res {r} is out of range (8..=2048)"
+            );
             r
         }
         None => ((size.max_element() / typical.max(1e-9)).ceil() as usize + 1).clamp(16, MAX_LONGEST),

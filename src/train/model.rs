@@ -117,7 +117,7 @@ impl Model {
     /// A fresh model: every voxel active, density at `init_sigma`, grey colour.
     pub fn new(geom: GridGeom, degree: usize, shift: f32, init_sigma: f32) -> Result<Model> {
         check_res(geom.res, "training grid")?;
-        crate::ensure!(degree <= 2, "SH degree must be 0, 1 or 2, got {degree}");
+        crate::ensure_within!(OutOfRange, degree <= 2, "SH degree must be 0, 1 or 2, got {degree}");
         crate::ensure!(
             init_sigma > 0.0 && init_sigma.is_finite(),
             "initial density must be positive"
@@ -157,7 +157,7 @@ impl Model {
     ) -> Result<Model> {
         check_res(geom.res, "training grid")?;
         let n = geom.len();
-        crate::ensure!(degree <= 2, "SH degree must be 0, 1 or 2, got {degree}");
+        crate::ensure_within!(OutOfRange, degree <= 2, "SH degree must be 0, 1 or 2, got {degree}");
         crate::ensure!(
             density.len() == n && active.len() == n.div_ceil(64),
             "model arrays do not match the grid {:?}",

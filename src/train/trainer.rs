@@ -152,32 +152,49 @@ impl Default for TrainConfig {
 
 impl TrainConfig {
     pub fn validate(&self) -> Result<()> {
-        ensure!(self.batch >= 1 && self.batch <= 1 << 22, "batch must be 1..4M rays");
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
+            self.batch >= 1 && self.batch <= 1 << 22,
+            "batch must be 1..4M rays"
+        );
+        crate::ensure_within!(
+            OutOfRange,
             self.res >= 4 && self.res <= 1024,
             "res must be 4..1024, got {}",
             self.res
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.coarse_res >= 4 && self.coarse_res <= self.res,
             "coarse res must be 4..=res, got {}",
             self.coarse_res
         );
-        ensure!(self.stages >= 1 && self.stages <= 16, "stages must be 1..16");
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
+            self.stages >= 1 && self.stages <= 16,
+            "stages must be 1..16"
+        );
+        crate::ensure_within!(
+            OutOfRange,
             self.axis_scale
                 .iter()
                 .all(|s| s.is_finite() && (0.05..=4.0).contains(s)),
             "axis scales must be in [0.05, 4]"
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             (0.0..1.0).contains(&self.last_stage_at),
             "last_stage_at must be in [0, 1)"
         );
-        ensure!(self.sh_degree <= 2, "SH degree must be 0, 1 or 2");
+        crate::ensure_within!(OutOfRange, self.sh_degree <= 2, "SH degree must be 0, 1 or 2");
         self.vm.validate()?;
-        ensure!((1e-6..0.5).contains(&self.init_alpha), "init_alpha must be in (0, 0.5)");
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
+            (1e-6..0.5).contains(&self.init_alpha),
+            "init_alpha must be in (0, 0.5)"
+        );
+        crate::ensure_within!(
+            OutOfRange,
             self.feature_res >= 4 && self.feature_res <= 512,
             "feature res must be 4..512"
         );
@@ -195,21 +212,25 @@ impl TrainConfig {
             self.lr_vm_grid,
             self.lr_vm_net,
         ];
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             finite.iter().all(|x| x.is_finite() && *x >= 0.0),
             "learning rates, floors and weights must be finite and ≥ 0"
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.feature_guide.is_finite() && self.feature_guide >= 0.0,
             "feature guide σ must be finite and ≥ 0 (0: bilinear teacher maps), got {}",
             self.feature_guide
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.tv_keep > 0.0 && self.tv_keep <= 1.0,
             "tv_keep must be in (0, 1], got {}",
             self.tv_keep
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.background.iter().all(|c| c.is_finite()),
             "background must be finite"
         );

@@ -44,7 +44,8 @@ impl Vit {
     /// Loads and optimises `path` for one RGB image of `dims` (width,
     /// height), with `output` (a node or tensor name) as the result.
     pub fn load(path: &Path, output: &str, dims: [u32; 2]) -> Result<Vit> {
-        crate::ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             dims.iter().all(|d| (14..=2048).contains(d)),
             "teacher input size {}x{} is out of range 14..2048",
             dims[0],
