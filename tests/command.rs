@@ -384,7 +384,7 @@ fn invalid_scripts_fail_before_writing_anything() {
         ),
         (
             r#"[load_field(name: "a", source: file("missing.safetensors"))]"#,
-            "step 1 (load_field): file",
+            "missing.safetensors: No such file",
         ),
         (
             r#"[load_field(name: "a", source: demo(scene: "kitchen"))]"#,
@@ -831,4 +831,33 @@ fn a_step_that_does_not_parse_is_a_syntax_error_with_its_number() {
     assert_eq!(e.step(), None, "{e:?}");
     // A later, valid parse does not inherit the failed step.
     assert!(parse_script("[]", Format::Ron).unwrap().commands.is_empty());
+}
+
+/// A script's check and its run agree where the dry run cannot read grids:
+/// a missing field file fails both with the same I/O error, and a stroke on
+/// a field without semantic features fails both with the same reason.
+#[test]
+fn checks_and_runs_agree_on_missing_files_and_fields_without_features() {
+    use isrf::Error;
+    let dir = tempfile::tempdir().unwrap();
+    let plain = dir.path().join("plain.safetensors");
+    FieldBuilder::new(Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0)), [16; 3])
+        .build(|p| if p.length() < 0.5 { 5.0 } else { -5.0 }, |_| Vec3::ONE, None)
+        .save(&plain)
+        .unwrap();
+    let stroke = r#"stroke(object: "ball", source: inline((camera: (transform_matrix: ((1,0,0,0),(0,1,0,0),(0,0,1,3),(0,0,0,1)), fl_x: 20, w: 20, h: 20), points: [(10, 10)])))"#;
+    for (file, want) in [
+        ("plain.safetensors", "no semantic features"),
+        ("missing.safetensors", "missing.safetensors"),
+    ] {
+        let text = format!(r#"[load_field(name: "a", source: file("{file}")), {stroke}]"#);
+        let script = parse_script(&text, Format::Ron).unwrap();
+        let checked = validate_script(&script, dir.path()).unwrap_err();
+        let ran = run_script(&script, dir.path(), &dir.path().join("out"), |_, _, _| {}).unwrap_err();
+        assert_eq!(checked.to_string(), ran.to_string(), "{file}");
+        assert!(checked.to_string().contains(want), "{checked}");
+        if file.starts_with("missing") {
+            assert!(matches!(checked.root(), Error::Io { .. }), "{checked:?}");
+        }
+    }
 }

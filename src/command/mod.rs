@@ -38,7 +38,7 @@ use crate::render::ColorEdit;
 use crate::segment::stroke::{CameraDoc, StrokeDoc};
 use crate::segment::{Growth, Polarity};
 use crate::util::{affine_from_rows, invertible};
-use crate::{ensure, Result};
+use crate::Result;
 use glam::{Affine3A, EulerRot, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
@@ -100,7 +100,11 @@ impl TransformSpec {
         let mut all: Vec<f32> = [self.translate, self.rotate, self.scale].concat();
         all.extend(self.pivot.unwrap_or_default());
         all.extend(self.matrix.iter().flatten().flatten());
-        ensure!(all.iter().all(|v| v.is_finite()), "transform has a non-finite value");
+        crate::ensure_within!(
+            OutOfRange,
+            all.iter().all(|v| v.is_finite()),
+            "transform has a non-finite value"
+        );
         crate::ensure_within!(
             OutOfRange,
             self.scale.iter().all(|&s| s.abs() > 1e-6 && s.abs() < 1e6),
@@ -108,7 +112,11 @@ impl TransformSpec {
             self.scale
         );
         if let Some(m) = self.matrix {
-            ensure!(invertible(&affine_from_rows(&m)), "transform matrix is not invertible");
+            crate::ensure_within!(
+                OutOfRange,
+                invertible(&affine_from_rows(&m)),
+                "transform matrix is not invertible"
+            );
         }
         Ok(())
     }
@@ -470,7 +478,8 @@ impl CameraSource {
             elevation_deg,
         } = self
         {
-            ensure!(
+            crate::ensure_within!(
+                OutOfRange,
                 center.iter().all(|v| v.is_finite()) && radius.is_finite() && *radius > 0.0,
                 "orbit centre/radius must be finite, radius > 0"
             );

@@ -397,6 +397,7 @@ impl Session {
         let mut total = Timings::default();
         let mut made = exists;
         let cache = if self.dry {
+            crate::field::cache::require_features(&f.field)?;
             None
         } else {
             self.progress.set("per-voxel features", 0, 0);
@@ -428,6 +429,7 @@ impl Session {
     fn grow(&self, st: &mut State, object: &str, steps: Growth) -> Result<String> {
         let o = st.object_named(object)?.clone();
         if self.dry {
+            crate::field::cache::require_features(&st.field_of(&o)?.field)?;
             return Ok(String::new());
         }
         let cache = st.field_of(&o)?.field.feature_cache()?;
@@ -451,13 +453,19 @@ impl Session {
 }
 
 /// A field file as a dry session sees it: checked as far as its header,
-/// with the header's bounds over the smallest grid.
+/// with the header's bounds and feature channels over the smallest grid
+/// (and the same error as loading it when it is missing).
 fn stand_in(path: &Path) -> Result<Field> {
-    crate::ensure!(path.exists(), "file '{}' does not exist", path.display());
+    std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
     let (h, _) = crate::field::io::read_header(path)?;
     let [lo, hi] = h.bounds;
     let bounds = Aabb::new(Vec3::from(lo), Vec3::from(hi));
-    Ok(FieldBuilder::new(bounds, [2; 3]).build(|_| 0.0, |_| Vec3::ZERO, None))
+    let zero = |_: Vec3, out: &mut [f32]| out.fill(0.0);
+    let channels = h.feature_channels();
+    let features = (channels > 0).then_some((channels, &zero as &(dyn Fn(Vec3, &mut [f32]) + Sync)));
+    let mut f = FieldBuilder::new(bounds, [2; 3]).build(|_| 0.0, |_| Vec3::ZERO, features);
+    f.ndc = h.ndc;
+    Ok(f)
 }
 
 /// The built-in stroke of demo object `demo_object`, for `object`.

@@ -230,6 +230,10 @@ pub struct NvosReport {
     pub iou: f64,
     pub accuracy: f64,
     pub ap: f64,
+    /// IoU when a pixel counts as the object from a larger share of what
+    /// it shows (0.1 is `iou`; 0.5: the object is most of the pixel): how
+    /// much of the error is a faint halo rather than wrong voxels.
+    pub iou_by_share: Vec<(f32, f64)>,
     pub voxels: usize,
     /// The predicted mask on the target view (row-major, mask size), for
     /// `isrf eval --mask-out`.
@@ -357,6 +361,13 @@ pub fn evaluate_nvos(
         iou: c.iou(),
         accuracy: c.accuracy(),
         ap: average_precision(&f.out.probe_opacity, &gt),
+        iou_by_share: [0.1f32, 0.3, 0.5, 0.7]
+            .iter()
+            .map(|&s| {
+                let p: Vec<bool> = f.out.probe_opacity.iter().map(|&v| v > s).collect();
+                (s, Confusion::of(&p, &gt).iou())
+            })
+            .collect(),
         voxels: mask.count(),
         predicted: pred,
         size: [gt_img.width(), gt_img.height()],

@@ -30,6 +30,16 @@ pub struct FeatureCache {
     pub inv_norm: Vec<f32>,
 }
 
+/// Segmenting needs semantic features: the check shared by the cache and
+/// a script's dry run (which builds no cache).
+pub fn require_features(field: &Field) -> crate::Result<()> {
+    crate::ensure!(
+        field.feature_channels() > 0,
+        "this field has no semantic features to segment with"
+    );
+    Ok(())
+}
+
 impl FeatureCache {
     pub fn build(field: &Field) -> Result<Self> {
         let geom = field.geom();
@@ -40,7 +50,7 @@ impl FeatureCache {
             geom.res
         );
         let channels = field.feature_channels();
-        crate::ensure!(channels > 0, "this field has no semantic features to segment with");
+        require_features(field)?;
         let d = &field.density;
         let bits = Bitmap::from_fn(geom.res, |i| d.sigma_at(i) > OCCUPIED_FLOOR);
         let voxels: Vec<u32> = bits.ones().map(|i| i as u32).collect();

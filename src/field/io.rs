@@ -166,6 +166,14 @@ pub struct Header {
 }
 
 impl Header {
+    /// Semantic feature channels the file holds (0: none).
+    pub fn feature_channels(&self) -> usize {
+        match &self.features {
+            Some(FeaturesHeader::Grid(c)) => c.channels,
+            Some(FeaturesHeader::Vm(v)) => v.out,
+            None => 0,
+        }
+    }
     /// The header of every channel grid (appearance and features).
     fn channel_headers(&self) -> impl Iterator<Item = &ChannelHeader> {
         let app = match &self.appearance {

@@ -66,11 +66,13 @@ impl ColorEdit {
             self.saturation,
             self.brightness,
         ];
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             v.iter().all(|x| x.is_finite()),
             "colour edit has a non-finite value: {self:?}"
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.tint.iter().all(|&t| t >= 0.0) && self.saturation >= 0.0 && self.brightness >= 0.0,
             "colour edit: tint, saturation and brightness must not be negative: {self:?}"
         );

@@ -135,47 +135,56 @@ impl SegmentParams {
 
 impl SegmentParams {
     pub fn validate(&self) -> Result<()> {
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.k >= 1 && self.k <= 100_000,
             "K must be between 1 and 100000, got {}",
             self.k
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.theta.is_finite() && self.theta > 0.0,
             "theta must be positive, got {}",
             self.theta
         );
         let g = &self.grow;
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             g.sigma_f.is_finite() && g.sigma_f > 0.0,
             "sigma_f must be positive, got {}",
             g.sigma_f
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             g.sigma_s.is_finite() && g.sigma_s > 0.0,
             "sigma_s must be positive, got {}",
             g.sigma_s
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             g.tau.is_finite() && (0.0..1.0).contains(&g.tau),
             "tau must be in [0, 1), got {}",
             g.tau
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.seed_floor.is_finite() && self.seed_floor >= 0.0,
             "seed floor must be >= 0"
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.stroke_keep > 0.0 && self.stroke_keep <= 1.0,
             "stroke keep must be in (0, 1], got {}",
             self.stroke_keep
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             self.solid_alpha.is_finite() && (0.0..1.0).contains(&self.solid_alpha),
             "solid alpha must be in [0, 1), got {}",
             self.solid_alpha
         );
-        ensure!(
+        crate::ensure_within!(
+            OutOfRange,
             g.theta_grow > 0.0 && !g.theta_grow.is_nan(),
             "theta_grow must be positive, got {}",
             g.theta_grow

@@ -387,23 +387,6 @@ fn parse_strokes_in(text: &str, cameras: Option<&CameraSet>, to_world: Affine3A)
         .collect()
 }
 
-/// Checks a stroke file without the cameras its strokes may name (a script's
-/// dry run): everything is checked except that named views exist, which
-/// only the field's capture cameras can tell at run time.
-pub fn check_strokes(path: &Path) -> Result<()> {
-    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let docs = stroke_docs(&text).map_err(|e| Error::bad_file(path, e.to_string()))?;
-    let bad = |i: usize, e: Error| Error::bad_file(path, format!("stroke {i}: {e}"));
-    for (i, d) in docs.iter().enumerate() {
-        if d.camera.transform_matrix.is_none() && d.camera.file_path.is_some() {
-            ensure!(!d.points.is_empty(), "{}: stroke {i} has no points", path.display());
-        } else {
-            d.to_stroke().map_err(|e| bad(i, e))?;
-        }
-    }
-    Ok(())
-}
-
 /// The camera of the frame of `set` that `doc.file_path` names (full name
 /// or base name); the document's `w`/`h`, if given, must match it.
 fn frame_camera(set: &CameraSet, doc: &CameraDoc) -> Result<Camera> {
