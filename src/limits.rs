@@ -8,8 +8,10 @@
 pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
 
 /// The longest image side a camera may describe (camera files, COLMAP,
-/// orbits); the pixel count is bounded by [`MAX_IMAGE_PIXELS`] as well.
-pub const MAX_IMAGE_SIDE: u32 = 1 << 16;
+/// LLFF, orbits, training images); the pixel count is bounded by
+/// [`MAX_IMAGE_PIXELS`] as well. 65535: the trainer stores pixel
+/// coordinates in 16 bits.
+pub const MAX_IMAGE_SIDE: u32 = u16::MAX as u32;
 
 /// The longest side of an image the GPU draws into (a window, a headless
 /// render target): the texture size every wgpu adapter supports.
@@ -34,8 +36,8 @@ mod tests {
 
     #[test]
     fn image_sizes_are_bounded_by_side_and_by_pixels() {
-        assert!(image_size_ok(8192, 8192) && image_size_ok(65536, 1));
-        assert!(!image_size_ok(0, 10) && !image_size_ok(65537, 1) && !image_size_ok(8193, 8192));
+        assert!(image_size_ok(8192, 8192) && image_size_ok(65535, 1));
+        assert!(!image_size_ok(0, 10) && !image_size_ok(65536, 1) && !image_size_ok(8193, 8192));
         assert!(texture_size_ok(8192, 1) && !texture_size_ok(8193, 1));
     }
 }

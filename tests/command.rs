@@ -493,6 +493,13 @@ fn compositions_round_trip_and_report_changed_files() {
     let back = composition::load(&ron_doc, dir.path()).unwrap();
     assert_eq!(image(&back), before);
     assert_eq!(back.state().objects[0].placement, s.state().objects[0].placement);
+    // A misspelt object key is refused, naming the object and the key.
+    let mut typo = json.clone();
+    typo["objects"][0]["remvoed"] = true.into();
+    let typo_doc = dir.path().join("typo.json");
+    std::fs::write(&typo_doc, serde_json::to_vec(&typo).unwrap()).unwrap();
+    let e = composition::load(&typo_doc, dir.path()).unwrap_err().to_string();
+    assert!(e.contains("object 'pot'") && e.contains("remvoed"), "{e}");
     // A changed field file is reported by name.
     let p = dir.path().join("shelf.safetensors");
     let mut bytes = std::fs::read(&p).unwrap();

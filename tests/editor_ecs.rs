@@ -84,7 +84,7 @@ fn paint(app: &mut App, object: &str) {
 fn strokes_through_the_ecs_equal_the_library_and_undo_redo_restore() {
     let mut app = app();
     assert_eq!(
-        app.world().resource::<EditorSession>().state.fields.len(),
+        app.world().resource::<EditorSession>().state().fields.len(),
         1,
         "the demo field loads"
     );
@@ -97,7 +97,7 @@ fn strokes_through_the_ecs_equal_the_library_and_undo_redo_restore() {
     // The library's answer for the same stroke on the same field.
     let stroke = demo_stroke("mug");
     let es = app.world().resource::<EditorSession>();
-    let field = es.state.fields[0].field.clone();
+    let field = es.state().fields[0].field.clone();
     let scene = Scene::new(vec![Layer::new(field.clone())]);
     let cache = field.feature_cache().unwrap();
     let params = SegmentParams::default();
@@ -183,9 +183,9 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
     settle(&mut app);
     let grown = objects(&mut app)[0].1.clone();
     let es = app.world().resource::<EditorSession>();
-    let cache = es.state.fields[0].field.feature_cache().unwrap();
+    let cache = es.state().fields[0].field.feature_cache().unwrap();
     let mut want = (*before).clone();
-    Grower::new(&cache, es.state.params.grow).step(&mut want);
+    Grower::new(&cache, es.state().params.grow).step(&mut want);
     assert_eq!(*grown, want, "keyboard growth == library growth");
     assert!(grown.count() > before.count(), "one more step adds voxels");
     assert!(matches!(
@@ -218,7 +218,7 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
     app.world_mut().resource_mut::<EditorSession>().apply(cmd);
     settle(&mut app);
     let es = app.world().resource::<EditorSession>();
-    let placed = es.state.objects[0].placement.transform;
+    let placed = es.state().objects[0].placement.transform;
     assert!((placed.translation - glam::Vec3A::new(0.3, 0.0, -0.2)).length() < 1e-5);
     assert!(matches!(
         es.session().unwrap().log().last(),
@@ -350,7 +350,7 @@ fn a_mouse_drag_on_a_gizmo_ring_turns_the_object_about_that_axis() {
         es.session().unwrap().log().last(),
         Some(Edit::Transform { .. })
     ));
-    let placed = isrf::app::convert::to_bevy_mat4(&es.state.objects[0].placement.transform);
+    let placed = isrf::app::convert::to_bevy_mat4(&es.state().objects[0].placement.transform);
     let shown = app.world().get::<Transform>(entity).unwrap().to_matrix();
     assert!(placed.abs_diff_eq(shown, 1e-4), "{placed:?} vs {shown:?}");
 }

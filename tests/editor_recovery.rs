@@ -63,7 +63,11 @@ fn failures_keep_the_last_good_state_and_the_recovery_file_follows_every_command
     let recorded = |app: &App| {
         let doc = RecoveryDoc::load(&rec_path).unwrap();
         let es = app.world().resource::<EditorSession>();
-        assert_eq!(doc.state, state_digest(&es.state), "the recovery file lags the session");
+        assert_eq!(
+            doc.state,
+            state_digest(es.state()),
+            "the recovery file lags the session"
+        );
         doc
     };
     let good = recorded(&app);
@@ -96,8 +100,8 @@ fn failures_keep_the_last_good_state_and_the_recovery_file_follows_every_command
             "opening a bad file: {errs:?}"
         );
         let es = app.world().resource::<EditorSession>();
-        assert_eq!(es.state.fields.len(), 1);
-        assert_eq!(es.state.objects.len(), 1);
+        assert_eq!(es.state().fields.len(), 1);
+        assert_eq!(es.state().objects.len(), 1);
         assert_eq!(recorded(&app).state, good.state);
     }
 
@@ -197,8 +201,8 @@ fn a_recovery_file_is_offered_restored_or_set_aside_as_asked() {
     es.accept_offer();
     let app = app_with(es);
     let es = app.world().resource::<EditorSession>();
-    assert_eq!(state_digest(&es.state), offered.state);
-    assert_eq!(es.state.objects.len(), 1);
+    assert_eq!(state_digest(es.state()), offered.state);
+    assert_eq!(es.state().objects.len(), 1);
 
     // Declining moves the file aside: kept, not offered again.
     let path = rec.path.clone();

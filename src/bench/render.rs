@@ -93,11 +93,16 @@ fn time_frames(scene: &Scene, cams: &[Camera], opts: &RenderOptions) -> Result<F
 
 /// Builds demo scene `scene_name` at `res`³ and measures the renderer on it.
 pub fn bench_render(scene_name: &str, res: usize, width: u32, height: u32, frames: usize) -> Result<RenderBenchRow> {
-    crate::ensure!(
-        (1..=16384).contains(&width) && (1..=16384).contains(&height),
-        "image size {width}x{height} is out of range (1..=16384)"
+    crate::ensure_within!(
+        OutOfRange,
+        crate::limits::image_size_ok(width, height),
+        "image size {width}x{height} is out of range"
     );
-    crate::ensure!((1..=1000).contains(&frames), "frames must be 1..=1000, got {frames}");
+    crate::ensure_within!(
+        OutOfRange,
+        (1..=1000).contains(&frames),
+        "frames must be 1..=1000, got {frames}"
+    );
     let (demo, scene_build_ms) = time_ms(|| crate::demo::build(scene_name, res, 0));
     let demo = demo?;
     let occupied = demo.occupied();

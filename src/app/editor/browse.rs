@@ -6,8 +6,9 @@
 use bevy_egui::egui;
 use std::path::{Path, PathBuf};
 
-/// File name endings the editor reads or writes.
-const KINDS: [&str; 4] = [".safetensors", ".ron", ".json", ".png"];
+/// File extensions the editor reads or writes (any case): fields, scripts
+/// and compositions, masks and renders, splats and meshes.
+const KINDS: [&str; 6] = ["safetensors", "ron", "json", "png", "ply", "glb"];
 
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Entry {
@@ -40,7 +41,7 @@ pub fn list(dir: &Path) -> std::io::Result<Vec<Entry>> {
         .filter_map(|e| {
             let name = e.file_name().to_string_lossy().into_owned();
             let is_dir = e.file_type().ok()?.is_dir();
-            let wanted = is_dir || KINDS.iter().any(|k| name.ends_with(k));
+            let wanted = is_dir || KINDS.contains(&crate::util::extension(Path::new(&name)).as_str());
             (wanted && !name.starts_with('.')).then(|| Entry {
                 path: e.path(),
                 name,
@@ -95,13 +96,13 @@ mod tests {
     #[test]
     fn folders_first_then_known_files_by_name() {
         let d = tempfile::tempdir().unwrap();
-        for f in ["b.safetensors", "a.ron", "notes.txt", ".hidden.json", "c.png"] {
+        for f in ["b.safetensors", "a.ron", "notes.txt", ".hidden.json", "c.png", "d.PLY"] {
             std::fs::write(d.path().join(f), b"x").unwrap();
         }
         std::fs::create_dir(d.path().join("zdir")).unwrap();
         std::fs::create_dir(d.path().join("adir")).unwrap();
         let names: Vec<String> = list(d.path()).unwrap().into_iter().map(|e| e.name).collect();
-        assert_eq!(names, ["adir", "zdir", "a.ron", "b.safetensors", "c.png"]);
+        assert_eq!(names, ["adir", "zdir", "a.ron", "b.safetensors", "c.png", "d.PLY"]);
         // A typed file points into its folder, a typed folder into itself.
         let typed = d.path().join("a.ron");
         assert_eq!(folder_of(&typed.display().to_string()), d.path());

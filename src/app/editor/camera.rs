@@ -4,7 +4,7 @@
 //! resolution while the view moves.
 
 use super::state::{EditorState, MovingResolution, Tool};
-use crate::app::convert::{bevy_transform, projection_for};
+use crate::app::convert::{bevy_transform, projection_for, to_bevy_vec3};
 use crate::app::gpu::{MarchScene, RayMarchCamera};
 use crate::camera::Camera as IsrfCamera;
 use bevy::camera::Projection;
@@ -55,6 +55,24 @@ pub fn snap_to(
         p.fov = q.fov;
     }
     aim_orbit(pan, transform, focus_depth);
+}
+
+/// Snaps the view to a capture view, orbiting about the first field's
+/// centre (in the world: an NDC field's centre is mapped back from `ndc`).
+pub fn snap_to_capture(
+    cam: &IsrfCamera,
+    st: &crate::command::state::State,
+    ndc: Option<crate::camera::Ndc>,
+    transform: &mut Transform,
+    projection: &mut Projection,
+    pan: &mut PanOrbitCamera,
+) {
+    let center = st.fields.first().map_or(Vec3::ZERO, |f| {
+        let c = f.field.bounds().center();
+        to_bevy_vec3(ndc.and_then(|n| n.to_world(c)).unwrap_or(c))
+    });
+    let depth = (center - to_bevy_vec3(cam.position())).dot(to_bevy_vec3(cam.forward()));
+    snap_to(cam, depth, transform, projection, pan);
 }
 
 /// Seconds without a change after which the view counts as still.

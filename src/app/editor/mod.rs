@@ -18,7 +18,7 @@ pub mod state;
 pub mod tools;
 pub mod ui;
 
-use crate::app::convert::{bevy_transform, from_bevy_transform, projection_for, to_bevy_vec3};
+use crate::app::convert::{bevy_transform, from_bevy_transform, projection_for};
 use crate::app::gpu::{MarchScene, RayMarchCamera, RayMarchPlugin};
 use crate::app::layers::{build_scene, FieldLayer, ObjectLayer, OverlayMode, Preview, Selected, SessionName};
 use crate::camera::Camera as IsrfCamera;
@@ -339,13 +339,7 @@ fn aim_once(sync: &mut SceneSync, state: &EditorState, es: &EditorSession, cams:
     let (Some((_, cam)), Ok((mut t, mut p, mut pan))) = (state.capture_cameras.first(), cams.single_mut()) else {
         return;
     };
-    // The field's centre in the world (NDC fields: mapped back from NDC).
-    let center = es.state.fields.first().map_or(Vec3::ZERO, |f| {
-        let c = f.field.bounds().center();
-        to_bevy_vec3(state.ndc.and_then(|n| n.to_world(c)).unwrap_or(c))
-    });
-    let depth = (center - to_bevy_vec3(cam.position())).dot(to_bevy_vec3(cam.forward()));
-    camera::snap_to(cam, depth, &mut t, &mut p, &mut pan);
+    camera::snap_to_capture(cam, es.state(), state.ndc, &mut t, &mut p, &mut pan);
     sync.aimed = true;
 }
 
@@ -363,7 +357,7 @@ fn scene_inputs(
         if sel {
             selected = Some(o.id);
         }
-        let Some(entry) = es.state.object(o.id) else {
+        let Some(entry) = es.state().object(o.id) else {
             continue;
         };
         let edit = entry.placement.color_edit.unwrap_or_default();
@@ -405,7 +399,7 @@ pub fn sync_scene(
     if sync.built_from.as_ref() == Some(&inputs) {
         return;
     }
-    let mut st = es.state.clone();
+    let mut st = es.state().clone();
     st.background = inputs.background;
     let (scene, overlay) = build_scene(&st, &inputs.previews, inputs.selected, inputs.mode);
     let step = crate::render::Step::default().scaled(inputs.step_scale);

@@ -73,8 +73,9 @@ struct Running {
 pub struct EditorSession {
     /// `None` while a request runs (the task owns it).
     session: Option<Session>,
-    /// The latest finished state (what the entities mirror).
-    pub state: State,
+    /// The latest finished state (what the entities mirror); changed only
+    /// by requests the session ran ([`EditorSession::state`] reads it).
+    state: State,
     /// Bumped whenever `state` changes.
     pub version: u64,
     queue: VecDeque<Request>,
@@ -168,6 +169,10 @@ impl EditorSession {
             .map(|r| (r.label.clone(), r.started.elapsed().as_secs_f32(), self.progress.get()))
     }
     /// The session, when no request holds it.
+    /// The latest finished state (what the entities mirror).
+    pub fn state(&self) -> &State {
+        &self.state
+    }
     pub fn session(&self) -> Option<&Session> {
         self.session.as_ref()
     }
@@ -346,7 +351,7 @@ pub fn sync_entities(
         return;
     }
     *seen = es.version;
-    let st = &es.state;
+    let st = es.state();
     let mut keep = Vec::new();
     for f in &st.fields {
         let layer = FieldLayer {

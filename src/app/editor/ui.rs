@@ -8,11 +8,11 @@
 //! commits becomes a [`Command`] queued on the session.
 
 use super::browse;
-use super::camera::{snap_to, EditorCamera};
+use super::camera::{snap_to_capture, EditorCamera};
 use super::session::{EditorSession, Request};
 use super::state::{CurrentStroke, EditorState, GizmoView, Handle, MovingResolution, Tool, TransformMode};
 use super::tools::{self, transform_command};
-use crate::app::convert::{bevy_transform, to_bevy_vec3};
+use crate::app::convert::bevy_transform;
 use crate::app::gpu::SharedStatus;
 use crate::app::layers::{FieldLayer, ObjectLayer, Selected, SessionName};
 use crate::command::{CameraSource, Edit, Export, FieldSource, Output};
@@ -144,13 +144,7 @@ pub fn panels(
     };
     if let Some(i) = snap {
         if let Some((_, c)) = state.capture_cameras.get(i).cloned() {
-            let center = es
-                .state
-                .fields
-                .first()
-                .map_or(Vec3::ZERO, |f| to_bevy_vec3(f.field.bounds().center()));
-            let depth = (center - to_bevy_vec3(c.position())).dot(to_bevy_vec3(c.forward()));
-            snap_to(&c, depth, &mut t, &mut p, &mut pan);
+            snap_to_capture(&c, es.state(), state.ndc, &mut t, &mut p, &mut pan);
         }
     }
     if let Ok(window) = windows.single() {
@@ -372,7 +366,7 @@ fn menu_bar(
             return;
         };
         let field_name = field_name.0.clone();
-        let is_demo = es.state.field(field_layer.id).is_some_and(|f| f.demo.is_some());
+        let is_demo = es.state().field(field_layer.id).is_some_and(|f| f.demo.is_some());
         if ui
             .add_enabled(is_demo, egui::Button::new("2D masks of the capture views"))
             .on_disabled_hover_text("needs a field with capture cameras (demo scenes)")
@@ -568,7 +562,7 @@ fn tools_panel(
         state.params = SegmentParams::for_rule(r);
         commit = true;
     }
-    if commit && state.params != es.state.params {
+    if commit && state.params != es.state().params {
         let p = state.params;
         let set = Edit::SetParams {
             rule,
@@ -651,7 +645,7 @@ fn selection_panel(
         return;
     };
     let name = name.0.clone();
-    let Some(entry) = es.state.object(obj.id).cloned() else {
+    let Some(entry) = es.state().object(obj.id).cloned() else {
         return;
     };
     ui.separator();
