@@ -390,3 +390,45 @@ fn a_rename_relabels_the_same_entity() {
     assert_eq!(label(&mut app), old);
     assert_eq!(objects(&mut app).len(), 1);
 }
+
+/// File → Import splats runs as a request (off the UI thread): the `.ply`
+/// becomes `<file>.safetensors` beside it, a field named after the file
+/// (a fresh name when taken) joins the session and undo removes it; a bad
+/// file is an error in the status, the session unchanged.
+#[test]
+fn splat_import_is_a_request_that_adds_a_field_and_undoes() {
+    let mut app = app();
+    let dir = tempfile::tempdir().unwrap();
+    let ply = dir.path().join("tabletop.ply");
+    let demo = isrf::demo::build("tabletop", 32, 0).unwrap();
+    isrf::splat::export::export(&demo.field, &isrf::splat::export::Selection::whole(), &ply).unwrap();
+    app.world_mut()
+        .resource_mut::<EditorSession>()
+        .push(Request::ImportSplats(ply.clone()));
+    settle(&mut app);
+    let names: Vec<String> = {
+        let es = app.world().resource::<EditorSession>();
+        es.state().fields.iter().map(|f| f.name.clone()).collect()
+    };
+    assert_eq!(names, ["tabletop", "tabletop 2"], "the name is taken by the demo");
+    assert!(ply.with_extension("safetensors").is_file());
+    let status = app
+        .world()
+        .resource::<isrf::app::editor::state::EditorState>()
+        .status
+        .clone();
+    assert!(status.contains("imported") && status.contains("Gaussians"), "{status}");
+    app.world_mut().resource_mut::<EditorSession>().push(Request::Undo);
+    settle(&mut app);
+    assert_eq!(app.world().resource::<EditorSession>().state().fields.len(), 1);
+    // A file that is not a splat file: an error, nothing added.
+    let bad = dir.path().join("bad.ply");
+    std::fs::write(&bad, b"not a ply").unwrap();
+    app.world_mut()
+        .resource_mut::<EditorSession>()
+        .push(Request::ImportSplats(bad));
+    settle(&mut app);
+    let st = app.world().resource::<isrf::app::editor::state::EditorState>();
+    assert!(st.errors.iter().any(|e| e.contains("bad.ply")), "{:?}", st.errors);
+    assert_eq!(app.world().resource::<EditorSession>().state().fields.len(), 1);
+}

@@ -42,6 +42,9 @@ struct Doc {
     objects: Vec<ObjectDoc>,
 }
 
+/// A field: its name, its source and the parts of a [`Placement`] that a
+/// whole field has (`transform`, `visible`; removal, duplication and colour
+/// edits are object edits), so its keys stay as documents always had them.
 #[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct FieldDoc {

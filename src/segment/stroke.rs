@@ -185,7 +185,13 @@ pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<Str
 pub struct CameraDoc {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub file_path: Option<String>,
-    #[serde(default, alias = "c2w", skip_serializing_if = "Option::is_none")]
+    /// 4×4 rows, or 3×4 as camera sets accept (bottom row [0 0 0 1]).
+    #[serde(
+        default,
+        alias = "c2w",
+        deserialize_with = "pose_rows",
+        skip_serializing_if = "Option::is_none"
+    )]
     pub transform_matrix: Option<[[f32; 4]; 4]>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub intrinsics: Option<Intrinsics>,
@@ -207,6 +213,43 @@ pub struct CameraDoc {
     /// the field was trained in it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ndc: Option<crate::camera::Ndc>,
+}
+
+/// A pose matrix's rows: 4, or 3 (the bottom row [0 0 0 1] implied), as
+/// camera sets read `transform_matrix`; JSON arrays or RON tuples.
+struct PoseRows([[f32; 4]; 4]);
+
+impl<'de> Deserialize<'de> for PoseRows {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        struct V;
+        impl<'de> serde::de::Visitor<'de> for V {
+            type Value = PoseRows;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a 4×4 or 3×4 matrix (a list of rows of 4 numbers)")
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> std::result::Result<PoseRows, A::Error> {
+                let mut m = [[0.0; 4]; 4];
+                m[3] = [0.0, 0.0, 0.0, 1.0];
+                let mut n = 0;
+                while let Some(row) = seq.next_element::<[f32; 4]>()? {
+                    if n == 4 {
+                        return Err(serde::de::Error::invalid_length(5, &self));
+                    }
+                    m[n] = row;
+                    n += 1;
+                }
+                if n < 3 {
+                    return Err(serde::de::Error::invalid_length(n, &self));
+                }
+                Ok(PoseRows(m))
+            }
+        }
+        d.deserialize_tuple(4, V)
+    }
+}
+
+fn pose_rows<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Option<[[f32; 4]; 4]>, D::Error> {
+    Ok(Option::<PoseRows>::deserialize(d)?.map(|p| p.0))
 }
 
 impl CameraDoc {
@@ -479,9 +522,27 @@ mod tests {
             e.starts_with("stroke camera: ") && e.contains("not a rigid transform"),
             "{e}"
         );
-        let mut huge = doc;
+        let mut huge = doc.clone();
         huge.w = Some(1 << 20);
         assert!(huge.to_camera().unwrap_err().to_string().contains("bad image size"));
+        // A 3×4 matrix, which camera sets accept, is the same camera.
+        let m34 = "[[0.0, 0.0, 1.0, 2.0], [0.0, 1.0, 0.0, 0.5], [-1.0, 0.0, 0.0, 0.0]]";
+        let doc34: CameraDoc = serde_json::from_str(&format!(
+            r#"{{"camera_angle_x": 0.7, "w": 64, "h": 48, "transform_matrix": {m34}}}"#
+        ))
+        .unwrap();
+        assert_eq!(doc34.transform_matrix, doc.transform_matrix);
+        // In RON scripts too, as tuples; 2 or 5 rows are refused.
+        let ron34 = "(camera_angle_x: Some(0.7), w: Some(64), h: Some(48), transform_matrix: Some(((0, 0, 1, 2), (0, 1, 0, 0.5), (-1, 0, 0, 0))))";
+        let r: CameraDoc = ron::from_str(ron34).unwrap();
+        assert_eq!(r.transform_matrix, doc.transform_matrix);
+        for rows in [
+            "[[1,0,0,0],[0,1,0,0]]",
+            "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1],[0,0,0,1]]",
+        ] {
+            let e = serde_json::from_str::<CameraDoc>(&format!(r#"{{"transform_matrix": {rows}}}"#)).unwrap_err();
+            assert!(e.to_string().contains("4×4 or 3×4"), "{e}");
+        }
     }
 
     fn stroke(points: &[[f32; 2]], radius: u32, w: u32, h: u32) -> Stroke {

@@ -145,7 +145,7 @@ fn start_steps(requests: &[Request]) -> Vec<StartStep> {
         .filter_map(|r| match r {
             Request::Apply(c) => Some(StartStep::Apply(c.clone())),
             Request::Open(p) => Some(StartStep::Open(p.clone())),
-            Request::Undo | Request::Redo | Request::Restore(_) => None,
+            Request::Undo | Request::Redo | Request::Restore(_) | Request::ImportSplats(_) => None,
         })
         .collect()
 }

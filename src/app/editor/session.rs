@@ -37,6 +37,9 @@ pub enum Request {
     Open(PathBuf),
     /// Replace the session by replaying a recovery file.
     Restore(Box<RecoveryDoc>),
+    /// Import a 3D Gaussian splat `.ply` (off the UI thread: millions of
+    /// Gaussians take seconds) and load the field it makes.
+    ImportSplats(PathBuf),
 }
 
 impl Request {
@@ -47,6 +50,7 @@ impl Request {
             Request::Redo => "redo".into(),
             Request::Open(p) => format!("opening {}", p.display()),
             Request::Restore(d) => format!("restoring {} edits", d.commands.len()),
+            Request::ImportSplats(p) => format!("importing {}", p.display()),
         }
     }
 }
@@ -178,12 +182,17 @@ impl EditorSession {
     }
     /// A name not used by any field or object, from `base`.
     pub fn fresh_name(&self, base: &str) -> String {
-        let used = |n: &str| self.state.name_used(n);
-        if !used(base) {
-            return base.to_string();
-        }
-        (2..).map(|i| format!("{base} {i}")).find(|n| !used(n)).unwrap()
+        fresh_name(&self.state, base)
     }
+}
+
+/// `base`, or `base 2`, `base 3`, … : the first name `st` does not use.
+pub(super) fn fresh_name(st: &State, base: &str) -> String {
+    let used = |n: &str| st.name_used(n);
+    if !used(base) {
+        return base.to_string();
+    }
+    (2..).map(|i| format!("{base} {i}")).find(|n| !used(n)).unwrap()
 }
 
 /// Applies one request, then records the edit log.
@@ -236,6 +245,7 @@ fn apply_request(
                 ..Default::default()
             })
         }
+        Request::ImportSplats(ply) => super::splats::import(&mut session, ply),
         Request::Restore(doc) => {
             let (s, report) = recovery::restore(doc, &progress)?;
             session = s.with_undo_limit(session.undo_limit());

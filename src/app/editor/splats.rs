@@ -2,37 +2,36 @@
 //! of the selected object or the scene without it.
 
 use super::session::EditorSession;
-use super::state::EditorState;
-use crate::command::{Edit, Export, FieldSource, Output};
+use crate::command::{output, Edit, Export, FieldSource, Output, Session, StepOutput};
 use crate::splat::{import_file, ImportOptions};
 use bevy_egui::egui;
 use std::path::Path;
 
 /// Imports a splat `.ply` into `<file>.safetensors` beside it and adds that
-/// field to the composition (the script records the field file).
-pub fn import(state: &mut EditorState, es: &mut EditorSession, ply: &Path) {
+/// field to the session (the edit log records the field file). Runs as an
+/// editor request, off the UI thread.
+pub fn import(session: &mut Session, ply: &Path) -> crate::Result<StepOutput> {
     let out = ply.with_extension("safetensors");
-    let r = import_file(ply, &ImportOptions::default()).and_then(|(f, r)| f.save(&out).map(|_| r));
-    match r {
-        Ok(r) => {
-            state.status = format!(
-                "imported {} Gaussians from {} ({} floaters left out) into {}",
-                r.gaussians,
-                ply.display(),
-                r.outside,
-                out.display()
-            );
-            let stem = ply
-                .file_stem()
-                .map_or("splats".into(), |s| s.to_string_lossy().into_owned());
-            es.apply(Edit::LoadField {
-                name: es.fresh_name(&stem),
-                source: FieldSource::File(out),
-                transform: None,
-            });
-        }
-        Err(e) => state.error(format!("import of {} failed: {e}", ply.display())),
-    }
+    let (field, r) = import_file(ply, &ImportOptions::default())?;
+    field.save(&out)?;
+    let stem = ply
+        .file_stem()
+        .map_or("splats".into(), |s| s.to_string_lossy().into_owned());
+    let load = Edit::LoadField {
+        name: super::session::fresh_name(session.state(), &stem),
+        source: FieldSource::File(out.clone()),
+        transform: None,
+    };
+    let mut step = output::perform(session, &load.into(), None)?;
+    step.message = format!(
+        "imported {} Gaussians from {} ({} floaters left out) into {}",
+        r.gaussians,
+        ply.display(),
+        r.outside,
+        out.display()
+    );
+    step.files.push(out);
+    Ok(step)
 }
 
 /// Export → the object's splats, or the scene without it, to `out`.

@@ -277,7 +277,7 @@ fn menu_bar(
             .add_enabled(has, egui::Button::new("Import 3D Gaussian splats (.ply)"))
             .clicked()
         {
-            super::splats::import(state, es, path.as_deref().unwrap());
+            es.push(Request::ImportSplats(path.clone().unwrap()));
         }
         if ui
             .add_enabled(has, egui::Button::new("Add field file to the composition"))
