@@ -19,6 +19,14 @@ struct FieldInfo {
 
 const COLOR_SPARSE: u32 = 1u;
 
+// The world point of an NDC point in front of z_ndc = 1
+// (src/camera/ndc.rs `Ndc::to_world`); `ndc` is pack.rs `ndc_params`
+// (on, near, 2f/W, 2f/H).
+fn ndc_to_world(q: vec3<f32>, ndc: vec4<f32>) -> vec3<f32> {
+    let z = 2.0 * ndc.y / (q.z - 1.0);
+    return vec3<f32>(-q.xy * z / ndc.zw, z);
+}
+
 // Degree-2 real SH basis for a unit direction (src/field/sh.rs).
 fn sh_basis(d: vec3<f32>) -> array<f32, 9> {
     let x = d.x;

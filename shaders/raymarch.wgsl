@@ -31,7 +31,7 @@
 //
 // Data layout: see src/app/gpu/pack.rs.
 
-#import isrf::common::{FieldInfo, COLOR_SPARSE, sh_basis, sh_dot, sh_colour}
+#import isrf::common::{FieldInfo, COLOR_SPARSE, sh_basis, sh_dot, sh_colour, ndc_to_world}
 
 struct View {
     c2w: mat4x4<f32>,
@@ -591,12 +591,6 @@ fn ndc_ray(o_world: vec3<f32>, d_world: vec3<f32>) -> array<vec3<f32>, 2> {
     return array<vec3<f32>, 2>(origin, normalize(dir));
 }
 
-// The world point of an NDC point in front of z_ndc = 1 (`Ndc::to_world`).
-fn ndc_to_world(q: vec3<f32>) -> vec3<f32> {
-    let z = 2.0 * view.ndc.y / (q.z - 1.0);
-    return vec3<f32>(-q.xy * z / view.ndc.zw, z);
-}
-
 // The march writes to two textures that the composite pass
 // (shaders/composite.wgsl) draws into the view: the colour (linear) and
 // the clip-space depth.
@@ -705,7 +699,7 @@ fn fragment(@builtin(position) pos: vec4<f32>) -> MarchOutput {
         var finite = true;
         if ndc {
             finite = p.z < 1.0 - 1e-6;
-            p = ndc_to_world(p);
+            p = ndc_to_world(p, view.ndc);
         }
         let clip = view.clip_from_world * vec4<f32>(p, 1.0);
         if finite {

@@ -8,7 +8,7 @@
 // One workgroup of 64 invocations bakes an eighth of a brick; workgroups
 // (y, z) number the pool slots (y fastest), as pack.rs `bake_dispatch`.
 
-#import isrf::common::{FieldInfo, sh_basis, sh_dot}
+#import isrf::common::{FieldInfo, sh_basis, sh_dot, ndc_to_world}
 
 struct Bake {
     // pool bricks per axis (xyz), pool slots to bake
@@ -53,8 +53,8 @@ fn ndc_direction(q: vec3<f32>, cam: vec3<f32>) -> vec3<f32> {
     }
     let n = bake.ndc.y;
     let s = bake.ndc.zw;
-    let z = 2.0 * n / (q.z - 1.0);
-    let p = vec3<f32>(-q.xy * z / s, z);
+    let p = ndc_to_world(q, bake.ndc);
+    let z = p.z;
     let d = p - cam;
     let j = vec3<f32>(-s * (d.xy / z - p.xy * d.z / (z * z)), -2.0 * n * d.z / (z * z));
     return direction(j);

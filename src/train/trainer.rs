@@ -537,12 +537,12 @@ impl Trainer {
                 let (mut se, mut fe, mut ns) = (0.0f64, 0.0f64, 0u64);
                 for &ri in idx {
                     let ri = ri as usize;
-                    let ray = &rays.ray(ri);
+                    let ray = rays.ray(ri);
                     let opts = MarchOpts {
                         step: ray_step(&model.geom, ray.dir),
                         ..opts
                     };
-                    let out = forward(model, ray, &opts, &mut s);
+                    let out = forward(model, &ray, &opts, &mut s);
                     ns += out.samples as u64;
                     let target_rgb = rays.color(ri);
                     let d = out.color - target_rgb;
@@ -557,7 +557,7 @@ impl Trainer {
                             h[c] = lambda * 2.0 * e / (fc as f32 * nb);
                         }
                     }
-                    backward(model, ray, &opts, &mut s, g, &h, gb);
+                    backward(model, &ray, &opts, &mut s, g, &h, gb);
                 }
                 (se, fe, ns)
             })

@@ -172,11 +172,11 @@ impl EditorSession {
             .as_ref()
             .map(|r| (r.label.clone(), r.started.elapsed().as_secs_f32(), self.progress.get()))
     }
-    /// The session, when no request holds it.
     /// The latest finished state (what the entities mirror).
     pub fn state(&self) -> &State {
         &self.state
     }
+    /// The session, when no request holds it.
     pub fn session(&self) -> Option<&Session> {
         self.session.as_ref()
     }
