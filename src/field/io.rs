@@ -734,6 +734,21 @@ impl<'a> Tensors<'a> {
         self.finite(name, v.iter().map(|x| x.to_f32()))?;
         Ok(v)
     }
+    /// A BF16 tensor, or an F32 one rounded to bf16 (checkpoints wrote Adam
+    /// moments in f32 before they were kept in bf16).
+    pub fn bf16_or_f32(&self, name: &str, shape: &[usize]) -> Result<Vec<half::bf16>> {
+        if self.st.tensor(name).is_ok_and(|t| t.dtype() == Dtype::F32) {
+            return Ok(self.f32(name, shape)?.into_iter().map(half::bf16::from_f32).collect());
+        }
+        let t = self.view(name, Dtype::BF16, shape)?;
+        let v: Vec<half::bf16> = t
+            .data()
+            .chunks_exact(2)
+            .map(|c| half::bf16::from_le_bytes([c[0], c[1]]))
+            .collect();
+        self.finite(name, v.iter().map(|x| x.to_f32()))?;
+        Ok(v)
+    }
     pub fn u8(&self, name: &str, shape: &[usize]) -> Result<Vec<u8>> {
         Ok(self.view(name, Dtype::U8, shape)?.data().to_vec())
     }

@@ -110,8 +110,8 @@ pub fn save(
     }
     for (name, values, mom) in trained {
         out.f32(name, values);
-        out.f32(&format!("m.{name}"), &mom.m);
-        out.f32(&format!("v.{name}"), &mom.v);
+        out.bytes(&format!("m.{name}"), Dtype::BF16, bytemuck::cast_slice(&mom.m));
+        out.bytes(&format!("v.{name}"), Dtype::BF16, bytemuck::cast_slice(&mom.v));
     }
     out.f32("history", &hist);
     // Packed little-endian words, like every bitmap in isrf files.
@@ -188,8 +188,8 @@ pub fn load(path: &Path) -> Result<Restored> {
     // The Adam moments saved beside array `name` of `len` values.
     let moments = |name: &str, len: usize| -> Result<Moments> {
         Ok(Moments {
-            m: t.f32(&format!("m.{name}"), &[len])?,
-            v: t.f32(&format!("v.{name}"), &[len])?,
+            m: t.bf16_or_f32(&format!("m.{name}"), &[len])?,
+            v: t.bf16_or_f32(&format!("v.{name}"), &[len])?,
         })
     };
     let mut opt = OptState {

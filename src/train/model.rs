@@ -525,8 +525,8 @@ impl Model {
 
 /// Per-slot rows (`stride` values each) of `old`'s slots renumbered for
 /// `new`; voxels `old` lacks get zeros.
-pub fn remap_rows(values: &[f32], old: &Slots, new: &Slots, stride: usize) -> Vec<f32> {
-    let mut out = vec![0.0f32; new.len() * stride];
+pub fn remap_rows<T: Copy + Default + Send + Sync>(values: &[T], old: &Slots, new: &Slots, stride: usize) -> Vec<T> {
+    let mut out = vec![T::default(); new.len() * stride];
     out.par_chunks_mut(stride.max(1))
         .zip(new.voxels.par_iter())
         .for_each(|(row, &voxel)| {
