@@ -62,8 +62,26 @@ fn restore_sigpipe() {
 #[cfg(not(unix))]
 fn restore_sigpipe() {}
 
+/// Buffers of 1 MB and more (decoded photos, grids, gradient arrays) are
+/// mapped on their own and go back to the system when freed. glibc would
+/// otherwise raise its mmap threshold after the first such free (up to
+/// 32 MB) and serve later ones from its per-thread heaps, which keep freed
+/// memory resident: training lego at 800×800 held 1.6 GB of released
+/// photos that way, in 27 heaps of 64 MB.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn large_buffers_mapped() {
+    // SAFETY: a malloc tuning call at startup, before any thread exists.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn large_buffers_mapped() {}
+
 fn main() {
     restore_sigpipe();
+    large_buffers_mapped();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Info(a) => cli::info::run(a),

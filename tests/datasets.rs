@@ -397,3 +397,69 @@ fn detection_errors_and_bad_options() {
         "{err}"
     );
 }
+
+/// A PNG with a gradient and partial alpha, so that compositing and the box
+/// filter both change its values.
+fn write_gradient_png(path: &Path, w: u32, h: u32, seed: u8) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    image::RgbaImage::from_fn(w, h, |x, y| {
+        image::Rgba([
+            (x * 30) as u8 ^ seed,
+            (y * 40) as u8,
+            seed.wrapping_mul(7),
+            (100 + 20 * x + y) as u8,
+        ])
+    })
+    .save(path)
+    .unwrap();
+}
+
+#[test]
+fn deferred_views_read_later_equal_views_read_at_load() {
+    let tmp = tempfile::tempdir().unwrap();
+    blender_folder(tmp.path());
+    let mut val = orbit(3, 8, 6);
+    for (i, f) in val.frames.iter_mut().enumerate() {
+        f.name = format!("./val/r_{i}");
+        write_gradient_png(&tmp.path().join(format!("val/r_{i}.png")), 8, 6, 11 * i as u8);
+    }
+    val.save(&tmp.path().join("transforms_val.json")).unwrap();
+    let eager = LoadOptions {
+        downscale: 2,
+        background: [0.2, 0.5, 0.9],
+        splits: Some(vec![Split::Train, Split::Val]),
+        ..opts()
+    };
+    let lazy = LoadOptions {
+        deferred: vec![Split::Val],
+        ..eager.clone()
+    };
+    let a = Dataset::load(tmp.path(), &eager).unwrap();
+    let b = Dataset::load(tmp.path(), &lazy).unwrap();
+    assert_eq!(a.len(), 7);
+    for i in 0..a.len() {
+        let deferred = b.splits[i] == Split::Val;
+        assert_eq!(b.images[i].is_deferred(), deferred, "view {i}");
+        assert_eq!(
+            (b.images[i].width, b.images[i].height),
+            (a.images[i].width, a.images[i].height)
+        );
+        let (pa, pb) = (a.pixels(i).unwrap(), b.pixels(i).unwrap());
+        assert!(!pa.rgb.is_empty());
+        assert_eq!(pa.rgb, pb.rgb, "view {i}: the same composited, downscaled colours");
+        assert_eq!(pa.alpha, pb.alpha, "view {i}");
+    }
+    // A deferred photo of the wrong size is refused at load (header only).
+    write_gradient_png(&tmp.path().join("val/r_1.png"), 4, 3, 0);
+    let err = Dataset::load(tmp.path(), &lazy).unwrap_err().to_string();
+    assert!(err.contains("r_1.png") && err.contains("4×3"), "{err}");
+    // One that breaks after the load is an error naming it when read.
+    write_gradient_png(&tmp.path().join("val/r_1.png"), 8, 6, 0);
+    let b = Dataset::load(tmp.path(), &lazy).unwrap();
+    std::fs::write(tmp.path().join("val/r_1.png"), b"not a png").unwrap();
+    let i = (0..b.len())
+        .find(|&i| b.image_paths[i].ends_with("val/r_1.png"))
+        .unwrap();
+    let err = b.pixels(i).unwrap_err().to_string();
+    assert!(err.contains("r_1.png"), "{err}");
+}

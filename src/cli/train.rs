@@ -210,6 +210,8 @@ pub fn run(a: Args) -> Result<()> {
         background: a.background.map_or([1.0; 3], |b| b.to_array()),
         llff_factor: a.llff_factor,
         splits,
+        // Held-out photos are read when they are scored, not held all along.
+        deferred: vec![isrf::data::Split::Val, isrf::data::Split::Test],
         ..Default::default()
     };
     let t0 = Instant::now();

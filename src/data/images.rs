@@ -28,17 +28,32 @@ pub use crate::limits::MAX_IMAGE_PIXELS;
 /// [`MAX_IMAGE_PIXELS`], so a small file that claims a huge image costs
 /// nothing. The decoder's own allocations are capped as well.
 pub fn open_image(path: &Path, expected: Option<(u32, u32)>) -> Result<image::DynamicImage> {
-    let err = |e: image::ImageError| match e {
+    let decoder = open_decoder(path, expected)?;
+    image::DynamicImage::from_decoder(decoder).map_err(|e| decode_error(path, e))
+}
+
+/// Checks a PNG or JPEG's size against `expected` and the limits from its
+/// header, without decoding the pixels.
+pub fn check_image(path: &Path, expected: Option<(u32, u32)>) -> Result<()> {
+    open_decoder(path, expected).map(|_| ())
+}
+
+fn decode_error(path: &Path, e: image::ImageError) -> Error {
+    match e {
         image::ImageError::IoError(io) => Error::io(path, io),
         other => Error::bad_file(path, format!("cannot decode image: {other}")),
-    };
+    }
+}
+
+/// The decoder of a PNG or JPEG whose header passed the size checks.
+fn open_decoder(path: &Path, expected: Option<(u32, u32)>) -> Result<impl image::ImageDecoder> {
     let mut reader = image::ImageReader::open(path)
         .and_then(|r| r.with_guessed_format())
         .map_err(|e| Error::io(path, e))?;
     let mut limits = image::Limits::default();
     limits.max_alloc = Some(1 << 30);
     reader.limits(limits);
-    let decoder = reader.into_decoder().map_err(err)?;
+    let decoder = reader.into_decoder().map_err(|e| decode_error(path, e))?;
     let (w, h) = image::ImageDecoder::dimensions(&decoder);
     if let Some((ew, eh)) = expected.filter(|&e| e != (w, h)) {
         return Err(Error::bad_file(
@@ -52,10 +67,25 @@ pub fn open_image(path: &Path, expected: Option<(u32, u32)>) -> Result<image::Dy
             format!("image is {w}×{h}, more than the {MAX_IMAGE_PIXELS} pixels allowed"),
         ));
     }
-    image::DynamicImage::from_decoder(decoder).map_err(err)
+    Ok(decoder)
 }
 
 impl Image {
+    /// A `width`×`height` image whose pixels are not read yet
+    /// ([`crate::data::Dataset::pixels`] reads them).
+    pub fn deferred(width: u32, height: u32) -> Image {
+        Image {
+            width: width.max(1),
+            height: height.max(1),
+            rgb: vec![],
+            alpha: None,
+        }
+    }
+    /// True for an image made by [`Image::deferred`] (or whose pixels were
+    /// released).
+    pub fn is_deferred(&self) -> bool {
+        self.rgb.is_empty()
+    }
     /// Reads a PNG or JPEG file. RGB is left as stored (not composited).
     pub fn load(path: &Path) -> Result<Image> {
         Self::from_dynamic(open_image(path, None)?)

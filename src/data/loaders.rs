@@ -207,6 +207,10 @@ fn finish(kind: DatasetKind, root: &Path, views: Vec<View>, opts: &LoadOptions, 
             // The size is checked against the camera from the file's header,
             // before anything is decoded.
             let k = &v.frame.camera.intrinsics;
+            if opts.deferred.contains(&v.split) {
+                super::images::check_image(&v.path, Some((k.width, k.height)))?;
+                return Ok(Image::deferred(k.width / factor, k.height / factor));
+            }
             let mut img = Image::load_sized(&v.path, k.width, k.height)?;
             img.composite(opts.background);
             Ok(img.downscaled(factor))
@@ -234,5 +238,6 @@ fn finish(kind: DatasetKind, root: &Path, views: Vec<View>, opts: &LoadOptions, 
         normalization: extras.normalization,
         near_far,
         notes: extras.notes,
+        factor,
     })
 }

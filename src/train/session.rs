@@ -301,7 +301,7 @@ impl Session {
 
     /// Mean PSNR of up to `max_views` held-out views (spread over the list)
     /// rendered with the training forward pass, and a preview of the first
-    /// one; `None` without held-out views.
+    /// one; `None` without held-out views (or when one cannot be read).
     pub fn quick_eval(&self, max_views: usize) -> Option<QuickEval> {
         if self.eval_views.is_empty() || max_views == 0 {
             return None;
@@ -315,7 +315,8 @@ impl Session {
         let mut preview = None;
         for i in pick {
             let cam = &self.dataset.cameras.frames[i].camera;
-            let img = &self.dataset.images[i];
+            // A held-out photo that cannot be read again skips this look.
+            let img = self.dataset.pixels(i).ok()?;
             let rays = pixel_rays(cam);
             let (out, _) = self.trainer.render_rays(&rays, false);
             let truth: Vec<Vec3> = (0..out.len() as u32)
@@ -354,7 +355,7 @@ impl Session {
         let mut psnr = vec![];
         for &i in &self.eval_views {
             let f = &self.dataset.cameras.frames[i];
-            let img = &self.dataset.images[i];
+            let img = self.dataset.pixels(i)?;
             let frame = render(&scene, &f.camera, &opts)?;
             let truth: Vec<Vec3> = img.rgb.chunks_exact(3).map(|c| Vec3::new(c[0], c[1], c[2])).collect();
             views.push(f.name.clone());
