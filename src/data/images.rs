@@ -91,6 +91,15 @@ impl Image {
         Self::from_dynamic(open_image(path, None)?)
     }
 
+    /// A dataset's view of the file at `path`: read (its size checked
+    /// against `expected` from the header first, when given), composited
+    /// over `background`, box-downscaled by `factor`.
+    pub fn load_view(path: &Path, expected: Option<(u32, u32)>, background: [f32; 3], factor: u32) -> Result<Image> {
+        let mut img = Self::from_dynamic(open_image(path, expected)?)?;
+        img.composite(background);
+        Ok(img.downscaled(factor))
+    }
+
     /// Like [`Image::load`] for an image that must be `width`×`height` (its
     /// camera's size): checked from the header before decoding.
     pub fn load_sized(path: &Path, width: u32, height: u32) -> Result<Image> {

@@ -211,9 +211,7 @@ fn finish(kind: DatasetKind, root: &Path, views: Vec<View>, opts: &LoadOptions, 
                 super::images::check_image(&v.path, Some((k.width, k.height)))?;
                 return Ok(Image::deferred(k.width / factor, k.height / factor));
             }
-            let mut img = Image::load_sized(&v.path, k.width, k.height)?;
-            img.composite(opts.background);
-            Ok(img.downscaled(factor))
+            Image::load_view(&v.path, Some((k.width, k.height)), opts.background, factor)
         })
         .collect::<Result<Vec<_>>>()?;
     let near_far = extras

@@ -120,11 +120,8 @@ impl Dataset {
         if !img.is_deferred() {
             return Ok(std::borrow::Cow::Borrowed(img));
         }
-        let f = self.factor.max(1);
-        // The size was checked against the camera at load.
-        let mut full = Image::load(&self.image_paths[i])?;
-        full.composite(self.background);
-        let out = full.downscaled(f);
+        // The file's size was checked against the camera at load.
+        let out = Image::load_view(&self.image_paths[i], None, self.background, self.factor)?;
         crate::ensure!(
             (out.width, out.height) == (img.width, img.height),
             "{}: image is {}×{} after downscaling, {}×{} at load",

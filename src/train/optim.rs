@@ -55,18 +55,6 @@ impl Moments {
             v: vec![bf16::ZERO; len],
         }
     }
-    /// Moments from f32 values (checkpoints store f32).
-    pub fn from_f32(m: &[f32], v: &[f32]) -> Self {
-        Moments {
-            m: m.iter().map(|&x| bf16::from_f32(x)).collect(),
-            v: v.iter().map(|&x| bf16::from_f32(x)).collect(),
-        }
-    }
-    /// The moments as f32 (m, v).
-    pub fn to_f32(&self) -> (Vec<f32>, Vec<f32>) {
-        let f = |a: &[bf16]| a.iter().map(|x| x.to_f32()).collect();
-        (f(&self.m), f(&self.v))
-    }
     /// The moments of `old`'s slots renumbered for `new` (whose voxels are a
     /// subset of `old`'s, e.g. after pruning), `stride` values per slot;
     /// voxels `old` lacks start from zero.
