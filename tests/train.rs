@@ -7,7 +7,8 @@ use half::f16;
 use isrf::camera::Ray;
 use isrf::field::{Aabb, GridGeom};
 use isrf::render::{render_rays, RenderOptions, Scene};
-use isrf::train::march::{backward, forward, GradBuf, MarchOpts, Scratch};
+use isrf::train::grads::{GradBuf, GradLog};
+use isrf::train::march::{backward, forward, MarchOpts, Scratch};
 use isrf::train::model::{bit, res_for, Model, Slots, PRUNED_RAW};
 use isrf::train::optim::{adam_step, corrected_lr, merge_marks, AdamParams, Moments};
 use isrf::train::step_of;
@@ -169,14 +170,15 @@ impl Probe {
         l
     }
     fn grads(&self, m: &Model, opts: &MarchOpts) -> GradBuf {
-        let mut g = GradBuf::new(m);
+        // Two logs, rays dealt alternately: what the trainer's tasks do.
+        let mut logs = [GradLog::new(m), GradLog::new(m)];
         let mut s = Scratch::default();
         for (i, r) in self.rays.iter().enumerate() {
             forward(m, r, opts, &mut s);
             let h: &[f32] = if opts.features { &self.b[i] } else { &[] };
-            backward(m, r, opts, &mut s, self.a[i], h, &mut g);
+            backward(m, r, opts, &mut s, self.a[i], h, &mut logs[i % 2]);
         }
-        g
+        GradBuf::from_logs(m, &mut logs)
     }
 }
 
@@ -190,6 +192,10 @@ enum Kind {
     DensityVm,
     VmGrid,
     VmNet,
+    /// Density and colour of a pruned model: gradients per slot of the
+    /// active voxels, some corners of sampled cells without one.
+    PrunedDensity,
+    PrunedSh,
 }
 
 /// Compares analytic and central-difference gradients on the parameters
@@ -197,16 +203,21 @@ enum Kind {
 fn check_gradients(degree: usize, kind: Kind) {
     let feat = matches!(kind, Kind::Features | Kind::DensityFeatures);
     let m0 = random_model(10, degree, feat.then_some((7, 4)), 10 + degree as u64);
-    let m0 = match kind {
+    let mut m0 = match kind {
         Kind::DensityVm | Kind::VmGrid | Kind::VmNet => with_vm(m0, 3),
         _ => m0,
     };
+    if matches!(kind, Kind::PrunedDensity | Kind::PrunedSh) {
+        let all = m0.len();
+        let kept = m0.prune(step_of(&m0.geom), 0.1, 0);
+        assert!(kept > all / 10 && kept < all * 9 / 10, "{kept} of {all} voxels kept");
+    }
     let opts = exact_opts(step_of(&m0.geom), feat);
     let probe = Probe::new(24, 4, 20 + degree as u64);
     let g = probe.grads(&m0, &opts);
     let (analytic, eps): (&[f32], f32) = match kind {
-        Kind::Density | Kind::DensityFeatures | Kind::DensityVm => (&g.density, 1e-2),
-        Kind::Sh => (&g.sh, 1e-2),
+        Kind::Density | Kind::DensityFeatures | Kind::DensityVm | Kind::PrunedDensity => (&g.density, 1e-2),
+        Kind::Sh | Kind::PrunedSh => (&g.sh, 1e-2),
         Kind::Features => (&g.feat, 1e-2),
         Kind::VmGrid => (&g.vm_grid, 1e-2),
         Kind::VmNet => (&g.vm_net, 1e-2),
@@ -223,7 +234,8 @@ fn check_gradients(degree: usize, kind: Kind) {
             let mut m = m0.clone();
             match kind {
                 Kind::Density | Kind::DensityFeatures | Kind::DensityVm => m.density[i] += delta,
-                Kind::Sh => m.sh[i] += delta,
+                Kind::PrunedDensity => m.density[m0.slots.voxels[i] as usize] += delta,
+                Kind::Sh | Kind::PrunedSh => m.sh[i] += delta,
                 Kind::Features => m.features.as_mut().unwrap().data[i] += delta,
                 Kind::VmGrid => m.vm.as_mut().unwrap().grid[i] += delta,
                 Kind::VmNet => m.vm.as_mut().unwrap().net[i] += delta,
@@ -245,6 +257,12 @@ fn density_gradient_matches_finite_differences() {
     check_gradients(2, Kind::Density);
     check_gradients(0, Kind::Density);
     check_gradients(1, Kind::DensityFeatures);
+}
+
+#[test]
+fn gradients_of_a_pruned_model_match_finite_differences() {
+    check_gradients(2, Kind::PrunedDensity);
+    check_gradients(2, Kind::PrunedSh);
 }
 
 #[test]

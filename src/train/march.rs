@@ -15,7 +15,8 @@
 //! black, so their density still gets the exact gradient of what was
 //! computed), and rays stop once T < `min_transmittance` (as the renderer).
 
-use super::model::{bit, set_bit, Model, BLOCK};
+use super::grads::GradLog;
+use super::model::{bit, Model, BLOCK};
 use crate::camera::Ray;
 use crate::field::sh;
 use glam::Vec3;
@@ -75,51 +76,6 @@ pub struct RayOut {
     pub samples: u32,
 }
 
-/// Gradient accumulators of one thread. Density and SH gradients are per
-/// slot of the model's active voxels ([`Model::slots`]; pruned voxels never
-/// train), `marks` flag every slot whose density received a gradient since
-/// the last optimizer step, `sh_marks` those whose colour did (only shaded
-/// samples: far fewer, and the optimizer's cost follows them). Features (a
-/// small dense grid) are per grid point.
-#[derive(Clone, Debug)]
-pub struct GradBuf {
-    pub density: Vec<f32>,
-    pub sh: Vec<f32>,
-    pub marks: Vec<u64>,
-    pub sh_marks: Vec<u64>,
-    pub feat: Vec<f32>,
-    pub feat_marks: Vec<u64>,
-    /// VM appearance: dense gradients of the grid and network arrays.
-    pub vm_grid: Vec<f32>,
-    pub vm_net: Vec<f32>,
-}
-
-impl GradBuf {
-    pub fn new(model: &Model) -> Self {
-        let n = model.slots.len();
-        let (nf, fc) = model.features.as_ref().map_or((0, 0), |f| (f.geom.len(), f.channels));
-        GradBuf {
-            density: vec![0.0; n],
-            sh: vec![0.0; n * model.sh_stride()],
-            marks: vec![0; n.div_ceil(64)],
-            sh_marks: vec![0; n.div_ceil(64)],
-            feat: vec![0.0; nf * fc],
-            feat_marks: vec![0; nf.div_ceil(64)],
-            vm_grid: vec![0.0; model.vm.as_ref().map_or(0, |v| v.grid.len())],
-            vm_net: vec![0.0; model.vm.as_ref().map_or(0, |v| v.net.len())],
-        }
-    }
-    /// True when this buffer's shape fits `model` (after resampling it won't).
-    pub fn fits(&self, model: &Model) -> bool {
-        let nf = model.features.as_ref().map_or(0, |f| f.geom.len() * f.channels);
-        let (vg, vn) = model.vm.as_ref().map_or((0, 0), |v| (v.grid.len(), v.net.len()));
-        self.density.len() == model.slots.len()
-            && self.sh.len() == model.slots.len() * model.sh_stride()
-            && self.feat.len() == nf
-            && (self.vm_grid.len(), self.vm_net.len()) == (vg, vn)
-    }
-}
-
 /// Precomputed per-grid constants for fast trilinear lookups.
 #[derive(Clone, Copy)]
 struct Lattice {
@@ -134,16 +90,12 @@ impl Lattice {
     fn new(g: &crate::field::GridGeom) -> Self {
         let [nx, ny, nz] = g.res;
         let n = Vec3::new((nx - 1) as f32, (ny - 1) as f32, (nz - 1) as f32);
-        let mut off = [0; 8];
-        for (k, o) in off.iter_mut().enumerate() {
-            *o = (k & 1) + nx * (((k >> 1) & 1) + ny * ((k >> 2) & 1));
-        }
         Lattice {
             min: g.bounds.min,
             scale: n / g.bounds.size(),
             hi: n,
             res: g.res,
-            off,
+            off: corner_offsets(g.res),
         }
     }
     /// Continuous grid coordinates of `p`.
@@ -169,8 +121,16 @@ impl Lattice {
     }
 }
 
+/// Grid-index offsets of a cell's 8 corners from its lower corner (corner
+/// k = x bit 0, y bit 1, z bit 2), on a grid of `res` points.
+pub(super) fn corner_offsets(res: [usize; 3]) -> [usize; 8] {
+    let [nx, ny, _] = res;
+    std::array::from_fn(|k| (k & 1) + nx * (((k >> 1) & 1) + ny * ((k >> 2) & 1)))
+}
+
+/// Trilinear weights of a cell's corners (order of [`corner_offsets`]).
 #[inline]
-fn weights(f: [f32; 3]) -> [f32; 8] {
+pub(super) fn weights(f: [f32; 3]) -> [f32; 8] {
     let [fx, fy, fz] = f;
     let (gx, gy, gz) = (1.0 - fx, 1.0 - fy, 1.0 - fz);
     [
@@ -362,25 +322,11 @@ fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut
     }
 }
 
-/// Backward pass for the ray of the last [`forward`] into `grads`, given
-/// dL/dC (`g`) and dL/dΦ (`h`, empty when features are not trained).
-pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: Vec3, h: &[f32], grads: &mut GradBuf) {
-    match model.degree {
-        0 => backward_k::<1>(model, ray, opts, s, g, h, grads),
-        1 => backward_k::<4>(model, ray, opts, s, g, h, grads),
-        _ => backward_k::<9>(model, ray, opts, s, g, h, grads),
-    }
-}
-
-fn backward_k<const K: usize>(
-    model: &Model,
-    ray: &Ray,
-    opts: &MarchOpts,
-    s: &mut Scratch,
-    g: Vec3,
-    h: &[f32],
-    grads: &mut GradBuf,
-) {
+/// Backward pass for the ray of the last [`forward`], given dL/dC (`g`) and
+/// dL/dΦ (`h`, empty when features are not trained): one record per sample
+/// into `log`, spread over the grids later by [`super::grads::gather`]
+/// (VM appearance gradients go straight into the log's dense arrays).
+pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: Vec3, h: &[f32], log: &mut GradLog) {
     let lat = Lattice::new(&model.geom);
     let fc = if opts.features && !h.is_empty() {
         model.features.as_ref().map_or(0, |f| f.channels)
@@ -388,8 +334,8 @@ fn backward_k<const K: usize>(
         0
     };
     let flat = model.features.as_ref().map(|f| Lattice::new(&f.geom));
-    let basis = sh::basis(ray.dir);
-    let stride = 3 * K;
+    let sh_colour = model.vm.is_none();
+    let (basis, h_row) = log.begin_ray(sh_colour.then(|| sh::basis(ray.dir)), &h[..fc]);
     let dt = opts.step;
     let g3 = g.to_array();
     // "After" sums: colour includes the background seen through the end.
@@ -400,42 +346,19 @@ fn backward_k<const K: usize>(
     for (idx, smp) in s.samples.iter().enumerate().rev() {
         let w = smp.trans * smp.alpha;
         let t_next = smp.trans * (1.0 - smp.alpha);
-        let base = smp.base as usize;
-        let w8 = weights(smp.frac);
         let c = Vec3::from(smp.color);
         let mut dsigma = if smp.shaded {
             g.dot(t_next * c - after)
         } else {
             -g.dot(after)
         };
+        // Colour: through the sigmoid, then (SH) the basis and the weights.
+        let dz = [0, 1, 2].map(|ch| w * g3[ch] * smp.color[ch] * (1.0 - smp.color[ch]));
         if let (true, Some(vm)) = (smp.shaded, &model.vm) {
-            let dz = [0, 1, 2].map(|ch| w * g3[ch] * smp.color[ch] * (1.0 - smp.color[ch]));
             let start = smp.row as usize;
             let row = &s.vm_rows[start..start + vm.shape.row_len()];
             let gp = lat.grid(ray.at(smp.t));
-            vm.backward(gp, row, dz, &mut grads.vm_grid, &mut grads.vm_net, &mut s.vm_tmp);
-        } else if smp.shaded {
-            // Colour: through the sigmoid, the SH basis and the weights.
-            let mut d = [[0.0f32; K]; 3];
-            for ch in 0..3 {
-                let dz = w * g3[ch] * smp.color[ch] * (1.0 - smp.color[ch]);
-                for j in 0..K {
-                    d[ch][j] = dz * basis[j];
-                }
-            }
-            for k in 0..8 {
-                let Some(v) = model.slots.slot(base + lat.off[k]) else {
-                    continue;
-                };
-                let dst = &mut grads.sh[v * stride..(v + 1) * stride];
-                set_bit(&mut grads.sh_marks, v);
-                let wk = w8[k];
-                for ch in 0..3 {
-                    for j in 0..K {
-                        dst[ch * K + j] += wk * d[ch][j];
-                    }
-                }
-            }
+            vm.backward(gp, row, dz, &mut log.vm_grid, &mut log.vm_net, &mut s.vm_tmp);
         }
         if smp.shaded {
             after += w * c;
@@ -447,19 +370,9 @@ fn backward_k<const K: usize>(
                     *a += w * p;
                 }
                 dsigma += df;
-                if let (Some(fl), Some(fg)) = (&flat, &model.features) {
+                if let Some(fl) = &flat {
                     if let Some((fb, ff)) = fl.cell(fl.grid(ray.at(smp.t))) {
-                        let fw = weights(ff);
-                        for k in 0..8 {
-                            let v = fb + fl.off[k];
-                            let dst = &mut grads.feat[v * fc..(v + 1) * fc];
-                            let scale = w * fw[k];
-                            for (o, &hh) in dst.iter_mut().zip(h) {
-                                *o += scale * hh;
-                            }
-                            set_bit(&mut grads.feat_marks, v);
-                        }
-                        let _ = fg;
+                        log.push_feature(fb as u32, ff, w, h_row);
                     }
                 }
             }
@@ -467,15 +380,8 @@ fn backward_k<const K: usize>(
             let dfe: f32 = h.iter().zip(after_f.iter()).map(|(a, b)| a * b).sum();
             dsigma -= dfe;
         }
-        let draw = dsigma * dt * smp.dsig;
-        for k in 0..8 {
-            // Pruned corners never train: they have no slot.
-            let Some(v) = model.slots.slot(base + lat.off[k]) else {
-                continue;
-            };
-            grads.density[v] += w8[k] * draw;
-            set_bit(&mut grads.marks, v);
-        }
+        let colour = (smp.shaded && sh_colour).then_some((basis, dz));
+        log.push_cell(smp.base, smp.frac, dsigma * dt * smp.dsig, colour);
     }
 }
 

@@ -10,6 +10,7 @@
 //! with [`Model::to_field`] renders as it trained.
 
 pub mod checkpoint;
+pub mod grads;
 pub mod march;
 pub mod model;
 pub mod optim;
@@ -22,7 +23,8 @@ pub mod trainer;
 pub mod vit;
 pub mod vm;
 
-pub use march::{GradBuf, MarchOpts, RayOut, Scratch};
+pub use grads::{GradBuf, GradLog};
+pub use march::{MarchOpts, RayOut, Scratch};
 pub use model::{DenseGrid, Model};
 pub use rays::{default_bounds, RaySet};
 pub use session::{default_teacher, preset, EvalReport, Quality, Session, DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS};

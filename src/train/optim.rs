@@ -146,14 +146,29 @@ pub fn adam_step(
                     let values = p[p0..p0 + stride].iter_mut().zip(&mut m[r.clone()]).zip(&mut v[r]);
                     for (((q, mk), vk), gk) in values.zip(g.iter_mut()) {
                         let gj = std::mem::take(gk);
-                        let mf = beta1 * mk.to_f32() + (1.0 - beta1) * gj;
-                        let vf = beta2 * vk.to_f32() + (1.0 - beta2) * gj * gj;
+                        let mf = beta1 * widen(*mk) + (1.0 - beta1) * gj;
+                        let vf = beta2 * widen(*vk) + (1.0 - beta2) * gj * gj;
                         *q = (*q - lr_t * mf / (vf.sqrt() + eps)).clamp(lo, hi);
-                        (*mk, *vk) = (bf16::from_f32(mf), bf16::from_f32(vf));
+                        (*mk, *vk) = (narrow(mf), narrow(vf));
                     }
                 }
             }
         });
+}
+
+/// bf16 → f32, exact. `half`'s conversions branch on NaN, which keeps the
+/// Adam loop from vectorising; moments are finite.
+#[inline(always)]
+fn widen(b: bf16) -> f32 {
+    f32::from_bits((b.to_bits() as u32) << 16)
+}
+
+/// f32 → bf16, rounding to nearest even (as `bf16::from_f32` for every
+/// finite value and infinity), without branches.
+#[inline(always)]
+fn narrow(x: f32) -> bf16 {
+    let u = x.to_bits();
+    bf16::from_bits((u.wrapping_add(0x7FFF + ((u >> 16) & 1)) >> 16) as u16)
 }
 
 /// `params` cut into one piece per chunk of `CHUNK` slots, each with the
@@ -317,6 +332,30 @@ pub fn add_tv(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn branch_free_bf16_conversions_agree_with_half() {
+        let mut rng = crate::util::SplitMix64::new(7);
+        let special = [
+            0.0f32,
+            -0.0,
+            1.0,
+            -1.0,
+            f32::MAX,
+            f32::MIN_POSITIVE,
+            1e-40,
+            f32::INFINITY,
+            65504.0,
+        ];
+        let random = (0..100_000)
+            .map(|_| f32::from_bits(rng.next_u64() as u32))
+            .filter(|x| x.is_finite());
+        for x in special.into_iter().chain(random) {
+            assert_eq!(narrow(x).to_bits(), bf16::from_f32(x).to_bits(), "{x:e}");
+            let b = bf16::from_f32(x);
+            assert_eq!(widen(b).to_bits(), b.to_f32().to_bits(), "{x:e}");
+        }
+    }
 
     const RES: [usize; 3] = [5, 4, 3];
 

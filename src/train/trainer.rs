@@ -3,7 +3,8 @@
 //! coarse-to-fine resolution stages, pruning, and an optional feature
 //! distillation phase after the radiance iterations.
 
-use super::march::{backward, forward, GradBuf, MarchOpts, RayOut, Scratch};
+use super::grads::{gather, GradBuf, GradLog};
+use super::march::{backward, forward, MarchOpts, RayOut, Scratch};
 use super::model::{res_for, Model, PRUNED_RAW};
 use super::optim::{adam_step, add_tv, corrected_lr, dense_adam_step, merge_marks, AdamParams, Layout, Moments, Tv};
 use super::rays::RaySet;
@@ -299,7 +300,9 @@ pub struct Trainer {
     pub teacher: Option<FeatureMaps>,
     /// What the schedule did (stage changes, pruning), for people to read.
     pub notes: Vec<String>,
-    grads: Vec<GradBuf>,
+    /// The step's gradients, and each rayon task's records of them.
+    grads: GradBuf,
+    logs: Vec<GradLog>,
     useful: Vec<u32>,
 }
 
@@ -335,7 +338,8 @@ impl Trainer {
             rays,
             teacher: None,
             notes: vec![],
-            grads: vec![],
+            grads: GradBuf::default(),
+            logs: vec![],
             useful: vec![],
         };
         t.reset_buffers(false);
@@ -347,8 +351,9 @@ impl Trainer {
     fn reset_buffers(&mut self, keep_moments: bool) {
         let nt = rayon::current_num_threads().max(1);
         // Free the old buffers before allocating new ones (peak memory).
-        self.grads = vec![];
-        self.grads = (0..nt).map(|_| GradBuf::new(&self.model)).collect();
+        self.grads = GradBuf::default();
+        self.grads = GradBuf::new(&self.model);
+        self.logs = (0..nt).map(|_| GradLog::new(&self.model)).collect();
         let (vg, vn) = self.model.vm.as_ref().map_or((0, 0), |v| (v.grid.len(), v.net.len()));
         let slots = self.model.slots.len();
         let fits = self.opt.density.m.len() == slots
@@ -521,15 +526,15 @@ impl Trainer {
         let opts = self.march_opts(features);
         let batch = self.sample_batch();
         let nb = batch.len().max(1) as f32;
-        let nt = self.grads.len();
+        let nt = self.logs.len();
         let chunk = batch.len().div_ceil(nt).max(1);
         let (model, rays, teacher) = (&self.model, &self.rays, self.teacher.as_ref());
         let (lambda, guide) = (self.config.feature_lambda, self.config.feature_guide);
         let results: Vec<(f64, f64, u64)> = self
-            .grads
+            .logs
             .par_iter_mut()
             .zip(batch.par_chunks(chunk))
-            .map(|(gb, idx)| {
+            .map(|(log, idx)| {
                 let mut s = Scratch::default();
                 let fc = if features { teacher.map_or(0, |t| t.channels) } else { 0 };
                 let mut target = vec![0.0f32; fc];
@@ -557,11 +562,12 @@ impl Trainer {
                             h[c] = lambda * 2.0 * e / (fc as f32 * nb);
                         }
                     }
-                    backward(model, &ray, &opts, &mut s, g, &h, gb);
+                    backward(model, &ray, &opts, &mut s, g, &h, log);
                 }
                 (se, fe, ns)
             })
             .collect();
+        gather(&self.model, &mut self.logs, &mut self.grads);
         let t_update = Instant::now();
         self.optimize(features)?;
         let update_seconds = t_update.elapsed().as_secs_f32();
@@ -613,10 +619,8 @@ impl Trainer {
         };
         let frozen = in_feat && cfg.freeze_geometry;
         let voxel = self.model.geom.spacing().min_element();
-        let mut marks: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.marks).collect();
-        let touched = merge_marks(&mut marks);
-        let mut marks: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.sh_marks).collect();
-        let sh_touched = merge_marks(&mut marks);
+        let touched = merge_marks(&mut [&mut self.grads.marks]);
+        let sh_touched = merge_marks(&mut [&mut self.grads.sh_marks]);
         let res = self.model.geom.res;
         let tv_sample = Tv {
             weight: 0.0,
@@ -628,7 +632,7 @@ impl Trainer {
             // resolution; the gradient w.r.t. raw carries voxel².
             add_tv(
                 &self.model.density,
-                &mut self.grads[0].density,
+                &mut self.grads.density,
                 1,
                 res,
                 &touched,
@@ -640,7 +644,7 @@ impl Trainer {
             );
             add_tv(
                 &self.model.sh,
-                &mut self.grads[0].sh,
+                &mut self.grads.sh,
                 self.model.sh_stride(),
                 res,
                 &sh_touched,
@@ -663,11 +667,10 @@ impl Trainer {
             corrected_lr(cfg.lr_sh * decay, t, hp)
         };
         {
-            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.density).collect();
             adam_step(
                 &mut self.model.density,
                 &mut self.opt.density,
-                &mut gs,
+                &mut [&mut self.grads.density],
                 1,
                 &touched,
                 Some(&self.model.slots),
@@ -678,11 +681,10 @@ impl Trainer {
         }
         {
             let stride = self.model.sh_stride();
-            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.sh).collect();
             adam_step(
                 &mut self.model.sh,
                 &mut self.opt.sh,
-                &mut gs,
+                &mut [&mut self.grads.sh],
                 stride,
                 &sh_touched,
                 None,
@@ -694,19 +696,31 @@ impl Trainer {
         if let (Some(vm), false) = (self.model.vm.as_mut(), frozen) {
             let lr_g = corrected_lr(cfg.lr_vm_grid * decay, t, hp);
             let lr_n = corrected_lr(cfg.lr_vm_net * decay, t, hp);
-            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.vm_grid).collect();
-            dense_adam_step(&mut vm.grid, &mut self.opt.vm_grid, &mut gs, lr_g, hp, (-1e3, 1e3));
-            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.vm_net).collect();
-            dense_adam_step(&mut vm.net, &mut self.opt.vm_net, &mut gs, lr_n, hp, (-1e3, 1e3));
+            let g = &mut self.grads;
+            dense_adam_step(
+                &mut vm.grid,
+                &mut self.opt.vm_grid,
+                &mut [&mut g.vm_grid],
+                lr_g,
+                hp,
+                (-1e3, 1e3),
+            );
+            dense_adam_step(
+                &mut vm.net,
+                &mut self.opt.vm_net,
+                &mut [&mut g.vm_net],
+                lr_n,
+                hp,
+                (-1e3, 1e3),
+            );
         }
         if features {
-            let mut fm: Vec<&mut Vec<u64>> = self.grads.iter_mut().map(|g| &mut g.feat_marks).collect();
-            let ftouched = merge_marks(&mut fm);
+            let ftouched = merge_marks(&mut [&mut self.grads.feat_marks]);
             let fdecay = self.decay(cfg.iters, cfg.feature_iters);
             let f = self.model.features.as_mut().expect("feature phase has a feature grid");
             add_tv(
                 &f.data,
-                &mut self.grads[0].feat,
+                &mut self.grads.feat,
                 f.channels,
                 f.geom.res,
                 &ftouched,
@@ -714,11 +728,10 @@ impl Trainer {
                 Tv::full(cfg.tv_features),
             );
             let lr_f = corrected_lr(cfg.lr_features * fdecay, t, hp);
-            let mut gs: Vec<&mut Vec<f32>> = self.grads.iter_mut().map(|g| &mut g.feat).collect();
             adam_step(
                 &mut f.data,
                 &mut self.opt.features,
-                &mut gs,
+                &mut [&mut self.grads.feat],
                 f.channels,
                 &ftouched,
                 None,
