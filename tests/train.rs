@@ -82,6 +82,7 @@ fn exact_opts(step: f32, features: bool) -> MarchOpts {
         weight_floor: 0.0,
         min_transmittance: 0.0,
         features,
+        geometry: true,
     }
 }
 
@@ -368,6 +369,26 @@ fn density_gradient_includes_feature_term() {
     assert!(diff > 1e-3, "feature loss does not reach the density ({diff})");
     // Colour gradients are identical.
     assert_eq!(with.sh, without.sh);
+}
+
+#[test]
+fn frozen_geometry_gets_no_gradient_and_the_same_feature_gradient() {
+    let m = random_model(10, 1, Some((7, 4)), 5);
+    let probe = Probe::new(16, 4, 6);
+    let opts = exact_opts(step_of(&m.geom), true);
+    let free = probe.grads(&m, &opts);
+    let frozen = probe.grads(
+        &m,
+        &MarchOpts {
+            geometry: false,
+            ..opts
+        },
+    );
+    assert!(free.feat.iter().any(|&g| g != 0.0));
+    assert!(frozen.feat == free.feat, "feature gradients differ");
+    assert!(frozen.feat_marks == free.feat_marks, "touched feature points differ");
+    assert!(frozen.density.iter().chain(&frozen.sh).all(|&g| g == 0.0));
+    assert!(frozen.marks.iter().chain(&frozen.sh_marks).all(|&w| w == 0));
 }
 
 #[test]

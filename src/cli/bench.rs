@@ -96,6 +96,10 @@ pub struct TrainArgs {
     /// Final grid resolution (default: the preset's).
     #[arg(long)]
     pub res: Option<usize>,
+    /// JSON file with training settings put over the preset (as `isrf
+    /// train --config`), for comparing settings.
+    #[arg(long)]
+    pub config: Option<std::path::PathBuf>,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -240,6 +244,9 @@ fn run_train(a: TrainArgs) -> Result<()> {
         Some(path) => {
             let kind = Dataset::detect(path)?;
             let mut config = preset(kind);
+            if let Some(p) = &a.config {
+                config = super::train::overlay_config(config, p)?;
+            }
             config.iters = a.iters;
             if let Some(r) = a.res {
                 config.res = r;

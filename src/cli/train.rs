@@ -140,24 +140,30 @@ fn find_teacher(a: &Args) -> Result<Option<TeacherSource>> {
     Ok(source)
 }
 
+/// `c` with the fields of the JSON object in file `path` put over it; an
+/// unknown field is an error naming it.
+pub fn overlay_config(c: TrainConfig, path: &std::path::Path) -> Result<TrainConfig> {
+    let p = path;
+    let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+    let mut v = serde_json::to_value(&c)?;
+    let over: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", p.display()))?;
+    let (Some(base), Some(over)) = (v.as_object_mut(), over.as_object()) else {
+        bail!("{}: expected a JSON object of training settings", p.display());
+    };
+    for (k, val) in over {
+        if !base.contains_key(k) {
+            bail!("{}: unknown training setting '{k}'", p.display());
+        }
+        base.insert(k.clone(), val.clone());
+    }
+    Ok(serde_json::from_value(v).with_context(|| format!("{}: bad training settings", p.display()))?)
+}
+
 fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig> {
     let (mut c, preset_feature_iters) = a.preset.apply(preset(kind));
     if let Some(p) = &a.config {
-        let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-        // Overlay the file's fields on the preset.
-        let mut v = serde_json::to_value(&c)?;
-        let over: serde_json::Value =
-            serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", p.display()))?;
-        let (Some(base), Some(over)) = (v.as_object_mut(), over.as_object()) else {
-            bail!("{}: expected a JSON object of training settings", p.display());
-        };
-        for (k, val) in over {
-            if !base.contains_key(k) {
-                bail!("{}: unknown training setting '{k}'", p.display());
-            }
-            base.insert(k.clone(), val.clone());
-        }
-        c = serde_json::from_value(v).with_context(|| format!("{}: bad training settings", p.display()))?;
+        c = overlay_config(c, p)?;
     }
     if let Some(n) = a.iters {
         c.iters = n;

@@ -31,6 +31,9 @@ pub struct MarchOpts {
     pub min_transmittance: f32,
     /// Render (and train) semantic features.
     pub features: bool,
+    /// Density and colour train: the backward pass records their
+    /// gradients (off while distilling features into a frozen field).
+    pub geometry: bool,
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -343,6 +346,10 @@ pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: 
     let after_f = &mut s.tmp;
     after_f.clear();
     after_f.resize(fc, 0.0);
+    if !opts.geometry {
+        feature_records(ray, s, fc, flat.as_ref(), h_row, log);
+        return;
+    }
     for (idx, smp) in s.samples.iter().enumerate().rev() {
         let w = smp.trans * smp.alpha;
         let t_next = smp.trans * (1.0 - smp.alpha);
@@ -382,6 +389,20 @@ pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: 
         }
         let colour = (smp.shaded && sh_colour).then_some((basis, dz));
         log.push_cell(smp.base, smp.frac, dsigma * dt * smp.dsig, colour);
+    }
+}
+
+/// The feature records of the last forward pass alone (frozen density and
+/// colour): each shaded sample's weight in its feature cell.
+fn feature_records(ray: &Ray, s: &Scratch, fc: usize, flat: Option<&Lattice>, h_row: u32, log: &mut GradLog) {
+    let Some(fl) = flat.filter(|_| fc > 0) else {
+        return;
+    };
+    // Back to front, as the full pass records them (same sums, bit for bit).
+    for smp in s.samples.iter().rev().filter(|smp| smp.shaded) {
+        if let Some((fb, ff)) = fl.cell(fl.grid(ray.at(smp.t))) {
+            log.push_feature(fb as u32, ff, smp.trans * smp.alpha, h_row);
+        }
     }
 }
 

@@ -52,6 +52,8 @@ pub struct TrainConfig {
     pub init_alpha: f32,
     /// After the first stage, samples with weight below this are not shaded.
     pub weight_floor: f32,
+    /// Rays stop once their transmittance drops below this.
+    pub min_transmittance: f32,
     /// Voxels whose per-sample opacity stays below this are pruned (with a
     /// margin of `prune_dilate` voxels) at every stage change and every
     /// `prune_every` iterations.
@@ -122,6 +124,7 @@ impl Default for TrainConfig {
             lr_final: 0.1,
             init_alpha: 1e-4,
             weight_floor: 1e-4,
+            min_transmittance: 1e-4,
             prune_alpha: 1e-3,
             prune_dilate: 2,
             prune_every: 1000,
@@ -198,6 +201,11 @@ impl TrainConfig {
             OutOfRange,
             self.feature_res >= 4 && self.feature_res <= 512,
             "feature res must be 4..512"
+        );
+        crate::ensure_within!(
+            OutOfRange,
+            (0.0..0.5).contains(&self.min_transmittance),
+            "min_transmittance must be in [0, 0.5)"
         );
         let finite = [
             self.lr_density,
@@ -416,8 +424,9 @@ impl Trainer {
             step: self.step_size(),
             background: Vec3::from(self.config.background),
             weight_floor: if first_stage { 0.0 } else { self.config.weight_floor },
-            min_transmittance: 1e-4,
+            min_transmittance: self.config.min_transmittance,
             features,
+            geometry: !(self.in_feature_phase() && self.config.freeze_geometry),
         }
     }
 
@@ -608,16 +617,57 @@ impl Trainer {
 
     /// TV regularisers and the sparse Adam step on everything touched.
     fn optimize(&mut self, features: bool) -> Result<()> {
-        let cfg = &self.config;
         self.opt.t += 1;
         let hp = AdamParams::default();
-        let in_feat = self.iter >= cfg.iters;
+        let in_feat = self.iter >= self.config.iters;
         let decay = if in_feat {
-            cfg.lr_final
+            self.config.lr_final
         } else {
-            self.decay(0, cfg.iters)
+            self.decay(0, self.config.iters)
         };
-        let frozen = in_feat && cfg.freeze_geometry;
+        // Frozen geometry (distilling into a finished field): the backward
+        // pass recorded no density or colour gradients, nothing to step.
+        if !(in_feat && self.config.freeze_geometry) {
+            self.step_geometry(decay, hp);
+        }
+        if features {
+            self.step_features(hp);
+        }
+        Ok(())
+    }
+
+    /// TV and the Adam step of the feature grid.
+    fn step_features(&mut self, hp: AdamParams) {
+        let cfg = &self.config;
+        let ftouched = merge_marks(&mut [&mut self.grads.feat_marks]);
+        let fdecay = self.decay(cfg.iters, cfg.feature_iters);
+        let f = self.model.features.as_mut().expect("feature phase has a feature grid");
+        add_tv(
+            &f.data,
+            &mut self.grads.feat,
+            f.channels,
+            f.geom.res,
+            &ftouched,
+            Layout::Points,
+            Tv::full(cfg.tv_features),
+        );
+        let lr_f = corrected_lr(cfg.lr_features * fdecay, self.opt.t, hp);
+        adam_step(
+            &mut f.data,
+            &mut self.opt.features,
+            &mut [&mut self.grads.feat],
+            f.channels,
+            &ftouched,
+            None,
+            lr_f,
+            hp,
+            (-1e4, 1e4),
+        );
+    }
+
+    /// TV and the Adam step of density and colour (SH or VM).
+    fn step_geometry(&mut self, decay: f32, hp: AdamParams) {
+        let cfg = &self.config;
         let voxel = self.model.geom.spacing().min_element();
         let touched = merge_marks(&mut [&mut self.grads.marks]);
         let sh_touched = merge_marks(&mut [&mut self.grads.sh_marks]);
@@ -627,7 +677,7 @@ impl Trainer {
             keep: cfg.tv_keep,
             seed: SplitMix64::new(cfg.seed ^ (self.iter as u64).wrapping_mul(0x9E37_79B9)).next_u64(),
         };
-        if !frozen {
+        {
             // TV on voxel-scaled density: the weight means the same at every
             // resolution; the gradient w.r.t. raw carries voxel².
             add_tv(
@@ -656,16 +706,8 @@ impl Trainer {
             );
         }
         let t = self.opt.t;
-        let lr_d = if frozen {
-            0.0
-        } else {
-            corrected_lr(cfg.lr_density / voxel * decay, t, hp)
-        };
-        let lr_s = if frozen {
-            0.0
-        } else {
-            corrected_lr(cfg.lr_sh * decay, t, hp)
-        };
+        let lr_d = corrected_lr(cfg.lr_density / voxel * decay, t, hp);
+        let lr_s = corrected_lr(cfg.lr_sh * decay, t, hp);
         {
             adam_step(
                 &mut self.model.density,
@@ -693,7 +735,7 @@ impl Trainer {
                 (-1e3, 1e3),
             );
         }
-        if let (Some(vm), false) = (self.model.vm.as_mut(), frozen) {
+        if let Some(vm) = self.model.vm.as_mut() {
             let lr_g = corrected_lr(cfg.lr_vm_grid * decay, t, hp);
             let lr_n = corrected_lr(cfg.lr_vm_net * decay, t, hp);
             let g = &mut self.grads;
@@ -714,33 +756,6 @@ impl Trainer {
                 (-1e3, 1e3),
             );
         }
-        if features {
-            let ftouched = merge_marks(&mut [&mut self.grads.feat_marks]);
-            let fdecay = self.decay(cfg.iters, cfg.feature_iters);
-            let f = self.model.features.as_mut().expect("feature phase has a feature grid");
-            add_tv(
-                &f.data,
-                &mut self.grads.feat,
-                f.channels,
-                f.geom.res,
-                &ftouched,
-                Layout::Points,
-                Tv::full(cfg.tv_features),
-            );
-            let lr_f = corrected_lr(cfg.lr_features * fdecay, t, hp);
-            adam_step(
-                &mut f.data,
-                &mut self.opt.features,
-                &mut [&mut self.grads.feat],
-                f.channels,
-                &ftouched,
-                None,
-                lr_f,
-                hp,
-                (-1e4, 1e4),
-            );
-        }
-        Ok(())
     }
 
     /// Renders rays with the training forward pass (every sample shaded:
