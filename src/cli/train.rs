@@ -328,7 +328,11 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
         } else {
             (1.0 - k) * psnr_avg + k * s.psnr
         };
-        if a.eval_every > 0 && (s.iter.is_multiple_of(a.eval_every) || s.iter == total) {
+        // Distilling into a frozen field leaves its renders as they were:
+        // nothing new to score or look at.
+        let cfg = &session.trainer.config;
+        let changed = s.iter <= cfg.iters || !cfg.freeze_geometry || session.evals.is_empty();
+        if a.eval_every > 0 && changed && (s.iter.is_multiple_of(a.eval_every) || s.iter == total) {
             if let Some(q) = session.quick_eval(2) {
                 eval_psnr = Some(q.psnr);
                 session.evals.push((s.iter, q.psnr));

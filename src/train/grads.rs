@@ -50,6 +50,57 @@ struct FeatGrad {
     ray: u32,
 }
 
+/// A record spread over the corners of a grid cell.
+trait Record: Copy + Send + Sync {
+    /// Grid index of the cell's lower corner.
+    fn base(&self) -> u32;
+}
+
+impl Record for CellGrad {
+    fn base(&self) -> u32 {
+        self.base
+    }
+}
+
+impl Record for FeatGrad {
+    fn base(&self) -> u32 {
+        self.base
+    }
+}
+
+/// Grid points per bucket of the record sort (log2): a bucket's records
+/// touch a few grid rows (and the plane above), close in memory.
+const BUCKET_BITS: u32 = 12;
+
+fn bucket(grid_point: usize) -> usize {
+    grid_point >> BUCKET_BITS
+}
+
+/// Orders `records` by the bucket of their cell, keeping their order within
+/// a bucket (a counting sort: linear, where sorting by cell cost more than
+/// it saved on coarse grids). `spare` is scratch space.
+fn bucket_sort<R: Record>(records: &mut Vec<R>, spare: &mut Vec<R>) {
+    let Some(&first) = records.first() else {
+        return;
+    };
+    let nb = records.iter().map(|r| bucket(r.base() as usize)).max().unwrap_or(0) + 1;
+    let mut start = vec![0usize; nb + 1];
+    for r in records.iter() {
+        start[bucket(r.base() as usize) + 1] += 1;
+    }
+    for i in 1..=nb {
+        start[i] += start[i - 1];
+    }
+    spare.clear();
+    spare.resize(records.len(), first);
+    for r in records.iter() {
+        let b = bucket(r.base() as usize);
+        spare[start[b]] = *r;
+        start[b] += 1;
+    }
+    std::mem::swap(records, spare);
+}
+
 /// One task's gradient records for a step (see the module docs). The VM
 /// appearance (small dense arrays, optional) still accumulates densely per
 /// task.
@@ -132,8 +183,11 @@ pub struct GradBuf {
     /// VM appearance: dense gradients of the grid and network arrays.
     pub vm_grid: Vec<f32>,
     pub vm_net: Vec<f32>,
-    /// The logs' records merged and sorted (kept to reuse the allocation).
+    /// The logs' records merged and sorted, and scratch for the sort (kept
+    /// to reuse the allocations).
     cells: Vec<CellGrad>,
+    spare_cells: Vec<CellGrad>,
+    spare_feats: Vec<FeatGrad>,
     basis: Vec<[f32; SH_COEFFS]>,
     feats: Vec<FeatGrad>,
     hs: Vec<f32>,
@@ -172,8 +226,8 @@ pub fn gather(model: &Model, logs: &mut [GradLog], out: &mut GradBuf) {
     merge_records(logs, out);
     // Stable: records of one cell keep their order, so sums do not depend
     // on the sort's internals.
-    out.cells.par_sort_by_key(|c| c.base);
-    out.feats.par_sort_by_key(|c| c.base);
+    bucket_sort(&mut out.cells, &mut out.spare_cells);
+    bucket_sort(&mut out.feats, &mut out.spare_feats);
     spread_cells(model, out);
     spread_features(model, out);
     for log in logs.iter_mut() {
@@ -225,35 +279,43 @@ struct Piece {
 }
 
 /// Cuts `n_slots` slots into about `pieces` pieces of similar record counts.
-/// `bases` are the records' cells in increasing order; `first_slot(g)` is the
-/// first slot whose grid point is ≥ g, `grid_of(s)` slot s's grid point;
-/// a cell reaches grid points up to `reach` above its base.
-fn plan(
-    bases: &[u32],
+/// `records` are in bucket order ([`bucket_sort`]); `first_slot(g)` is the
+/// first slot whose grid point is ≥ g, `grid_of(s)` slot s's grid point; a
+/// cell reaches grid points up to `reach` above its base. A piece scans the
+/// whole buckets that hold cells able to reach it (a few records more than
+/// needed; the spread checks each corner).
+fn plan<R: Record>(
+    records: &[R],
     n_slots: usize,
     first_slot: impl Fn(usize) -> usize,
     grid_of: impl Fn(usize) -> usize,
     reach: usize,
     pieces: usize,
 ) -> Vec<Piece> {
-    let n = bases.len();
+    let n = records.len();
     if n == 0 || n_slots == 0 {
         return vec![];
     }
     let mut cuts = vec![0usize];
     for p in 1..pieces {
-        let s = first_slot(bases[n * p / pieces] as usize) / 64 * 64;
+        let s = first_slot(records[n * p / pieces].base() as usize) / 64 * 64;
         if s > *cuts.last().unwrap() && s < n_slots {
             cuts.push(s);
         }
     }
     cuts.push(n_slots);
+    let bucket_of = |r: &R| bucket(r.base() as usize);
     cuts.windows(2)
         .map(|w| {
             let lo = grid_of(w[0]);
             let hi = if w[1] == n_slots { usize::MAX } else { grid_of(w[1]) };
-            let first = bases.partition_point(|&b| (b as usize) < lo.saturating_sub(reach));
-            let last = bases.partition_point(|&b| (b as usize) < hi);
+            let from = bucket(lo.saturating_sub(reach));
+            let first = records.partition_point(|r| bucket_of(r) < from);
+            let last = if hi == usize::MAX {
+                n
+            } else {
+                records.partition_point(|r| bucket_of(r) <= bucket(hi - 1))
+            };
             Piece {
                 slots: w[0]..w[1],
                 grid: lo..hi,
@@ -302,11 +364,10 @@ fn spread_cells(model: &Model, out: &mut GradBuf) {
 }
 
 fn spread_cells_k<const K: usize>(model: &Model, out: &mut GradBuf) {
-    let bases: Vec<u32> = out.cells.iter().map(|c| c.base).collect();
     let slots = &model.slots;
     let off = corner_offsets(model.geom.res);
     let pieces = plan(
-        &bases,
+        &out.cells,
         slots.len(),
         |g| slots.voxels.partition_point(|&v| (v as usize) < g),
         |s| slots.voxels[s] as usize,
@@ -366,9 +427,8 @@ fn spread_features(model: &Model, out: &mut GradBuf) {
         return;
     }
     let fc = f.channels;
-    let bases: Vec<u32> = out.feats.iter().map(|c| c.base).collect();
     let off = corner_offsets(f.geom.res);
-    let pieces = plan(&bases, f.geom.len(), |g| g, |s| s, off[7], piece_count());
+    let pieces = plan(&out.feats, f.geom.len(), |g| g, |s| s, off[7], piece_count());
     let feat = cut(&mut out.feat, &pieces, fc);
     let marks = cut(&mut out.feat_marks, &pieces, 0);
     let (feats, hs) = (&out.feats, &out.hs);
@@ -396,23 +456,54 @@ fn spread_features(model: &Model, out: &mut GradBuf) {
 mod tests {
     use super::*;
 
+    impl Record for u32 {
+        fn base(&self) -> u32 {
+            *self
+        }
+    }
+
+    /// Random cells over `grid` points, in bucket order.
+    fn random_records(n: u32, grid: u32) -> Vec<u32> {
+        let mut records: Vec<u32> = (0..n).map(|i| (i.wrapping_mul(2_654_435_761) >> 7) % grid).collect();
+        bucket_sort(&mut records, &mut vec![]);
+        records
+    }
+
+    #[test]
+    fn bucket_sort_orders_by_bucket_and_keeps_order_within_one() {
+        let records: Vec<(u32, u32)> = (0..20_000u32).map(|i| ((i * 7919) % 100_000, i)).collect();
+        #[derive(Clone, Copy)]
+        struct R(u32, u32);
+        impl Record for R {
+            fn base(&self) -> u32 {
+                self.0
+            }
+        }
+        let mut rs: Vec<R> = records.iter().map(|&(b, i)| R(b, i)).collect();
+        bucket_sort(&mut rs, &mut vec![]);
+        assert_eq!(rs.len(), records.len());
+        for w in rs.windows(2) {
+            let (a, b) = (bucket(w[0].0 as usize), bucket(w[1].0 as usize));
+            assert!(a < b || (a == b && w[0].1 < w[1].1), "out of order");
+        }
+    }
+
     #[test]
     fn pieces_own_whole_mark_words_and_see_every_record_that_reaches_them() {
-        // 1000 slots, every other grid point active; records on many cells.
-        let voxels: Vec<usize> = (0..1000).map(|s| 2 * s).collect();
-        let bases: Vec<u32> = (0..5000u32).map(|i| (i * 7919) % 2000).collect::<Vec<_>>();
-        let mut bases = bases;
-        bases.sort_unstable();
-        let reach = 33;
+        // 50 000 slots, every other grid point active; records on many cells
+        // over about 25 buckets.
+        let voxels: Vec<usize> = (0..50_000).map(|s| 2 * s).collect();
+        let records = random_records(20_000, 100_000);
+        let reach = 4097;
         let pieces = plan(
-            &bases,
+            &records,
             voxels.len(),
             |g| voxels.partition_point(|&v| v < g),
             |s| voxels[s],
             reach,
             7,
         );
-        assert!(pieces.len() > 1);
+        assert!(pieces.len() > 3);
         assert_eq!(pieces[0].slots.start, 0);
         assert_eq!(pieces.last().unwrap().slots.end, voxels.len());
         for w in pieces.windows(2) {
@@ -422,7 +513,7 @@ mod tests {
         }
         // Every (record, corner) pair lands in exactly one piece that
         // scans the record.
-        for (i, &b) in bases.iter().enumerate() {
+        for (i, &b) in records.iter().enumerate() {
             for o in [0, 1, reach] {
                 let g = b as usize + o;
                 let owners: Vec<&Piece> = pieces.iter().filter(|p| p.grid.contains(&g)).collect();
@@ -437,15 +528,18 @@ mod tests {
 
     #[test]
     fn cutting_gives_disjoint_slices_in_order() {
-        let pieces = plan(&[0, 10, 70, 130, 200], 256, |g| g, |s| s, 0, 4);
-        let mut data: Vec<usize> = (0..512).collect();
+        let records = random_records(5_000, 40_000);
+        let pieces = plan(&records, 40_000, |g| g, |s| s, 0, 4);
+        assert!(pieces.len() > 1);
+        let mut data: Vec<usize> = (0..80_000).collect();
         let parts = cut(&mut data, &pieces, 2);
-        assert_eq!(parts.iter().map(|p| p.len()).sum::<usize>(), 512);
+        assert_eq!(parts.iter().map(|p| p.len()).sum::<usize>(), 80_000);
         for (p, part) in pieces.iter().zip(&parts) {
             assert_eq!(part[0], 2 * p.slots.start);
         }
-        let mut words = vec![0u64; 4];
+        let mut words = vec![0u64; 40_000usize.div_ceil(64)];
+        let n_words = words.len();
         let parts = cut(&mut words, &pieces, 0);
-        assert_eq!(parts.iter().map(|p| p.len()).sum::<usize>(), 4);
+        assert_eq!(parts.iter().map(|p| p.len()).sum::<usize>(), n_words);
     }
 }

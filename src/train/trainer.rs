@@ -84,7 +84,11 @@ pub struct TrainConfig {
     /// sampled pixel with the image as guide (`FeatureMaps::sample_guided`);
     /// 0: plain bilinear sampling.
     pub feature_guide: f32,
-    /// Keep density and colour fixed while distilling features.
+    /// Keep density and colour fixed while distilling features (the
+    /// default): distillation then trains only the feature grid, at about
+    /// half the cost per iteration. Training them on at the decayed rate
+    /// bought fern 0.06 dB (22.47 against 22.41 held-out) for 5 more
+    /// minutes (19:14 against 14:15).
     pub freeze_geometry: bool,
     /// Colour model after the first stage: dense SH (the default) or the
     /// paper's VM + MLP.
@@ -140,7 +144,7 @@ impl Default for TrainConfig {
             feature_res: 128,
             feature_lambda: 1e-3,
             feature_guide: 0.1,
-            freeze_geometry: false,
+            freeze_geometry: true,
             appearance: AppearanceKind::Sh,
             vm: VmShape {
                 rank: 16,
@@ -411,6 +415,10 @@ impl Trainer {
     pub fn in_feature_phase(&self) -> bool {
         self.iter >= self.config.iters
     }
+    /// Density and colour no longer change (distilling into a frozen field).
+    pub fn radiance_frozen(&self) -> bool {
+        self.in_feature_phase() && self.config.freeze_geometry
+    }
     /// Sample spacing at the current resolution (the renderer's default:
     /// half the smallest voxel side).
     pub fn step_size(&self) -> f32 {
@@ -426,7 +434,7 @@ impl Trainer {
             weight_floor: if first_stage { 0.0 } else { self.config.weight_floor },
             min_transmittance: self.config.min_transmittance,
             features,
-            geometry: !(self.in_feature_phase() && self.config.freeze_geometry),
+            geometry: !self.radiance_frozen(),
         }
     }
 
@@ -627,7 +635,7 @@ impl Trainer {
         };
         // Frozen geometry (distilling into a finished field): the backward
         // pass recorded no density or colour gradients, nothing to step.
-        if !(in_feat && self.config.freeze_geometry) {
+        if !self.radiance_frozen() {
             self.step_geometry(decay, hp);
         }
         if features {
