@@ -142,8 +142,7 @@ fn find_teacher(a: &Args) -> Result<Option<TeacherSource>> {
 
 /// `c` with the fields of the JSON object in file `path` put over it; an
 /// unknown field is an error naming it.
-pub fn overlay_config(c: TrainConfig, path: &std::path::Path) -> Result<TrainConfig> {
-    let p = path;
+pub fn overlay_config(c: TrainConfig, p: &std::path::Path) -> Result<TrainConfig> {
     let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
     let mut v = serde_json::to_value(&c)?;
     let over: serde_json::Value =

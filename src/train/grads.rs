@@ -76,29 +76,33 @@ fn bucket(grid_point: usize) -> usize {
     grid_point >> BUCKET_BITS
 }
 
-/// Orders `records` by the bucket of their cell, keeping their order within
-/// a bucket (a counting sort: linear, where sorting by cell cost more than
-/// it saved on coarse grids). `spare` is scratch space.
-fn bucket_sort<R: Record>(records: &mut Vec<R>, spare: &mut Vec<R>) {
-    let Some(&first) = records.first() else {
+/// Moves the records of `parts` into `out` ordered by the bucket of their
+/// cell: a counting sort, linear (sorting by cell cost more than it saved on
+/// coarse grids). Stable: part after part, each in its own order, so sums
+/// do not depend on the sort. `renumber(r, part)` fixes indices that were
+/// relative to the part.
+fn merge_in_buckets<R: Record>(parts: &mut [&mut Vec<R>], out: &mut Vec<R>, renumber: impl Fn(R, usize) -> R) {
+    out.clear();
+    let Some(&first) = parts.iter().find_map(|p| p.first()) else {
         return;
     };
-    let nb = records.iter().map(|r| bucket(r.base() as usize)).max().unwrap_or(0) + 1;
+    let all = || parts.iter().flat_map(|p| p.iter());
+    let nb = all().map(|r| bucket(r.base() as usize)).max().unwrap_or(0) + 1;
     let mut start = vec![0usize; nb + 1];
-    for r in records.iter() {
+    for r in all() {
         start[bucket(r.base() as usize) + 1] += 1;
     }
     for i in 1..=nb {
         start[i] += start[i - 1];
     }
-    spare.clear();
-    spare.resize(records.len(), first);
-    for r in records.iter() {
-        let b = bucket(r.base() as usize);
-        spare[start[b]] = *r;
-        start[b] += 1;
+    out.resize(start[nb], first);
+    for (k, part) in parts.iter_mut().enumerate() {
+        for r in part.drain(..) {
+            let b = bucket(r.base() as usize);
+            out[start[b]] = renumber(r, k);
+            start[b] += 1;
+        }
     }
-    std::mem::swap(records, spare);
 }
 
 /// One task's gradient records for a step (see the module docs). The VM
@@ -157,13 +161,6 @@ impl GradLog {
     pub(super) fn push_feature(&mut self, base: u32, frac: [f32; 3], w: f32, ray: u32) {
         self.feats.push(FeatGrad { base, frac, w, ray });
     }
-    /// Records held (for tests and memory figures).
-    pub fn len(&self) -> usize {
-        self.cells.len() + self.feats.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
 }
 
 /// The step's gradients over the model's parameters. Density and SH
@@ -183,11 +180,9 @@ pub struct GradBuf {
     /// VM appearance: dense gradients of the grid and network arrays.
     pub vm_grid: Vec<f32>,
     pub vm_net: Vec<f32>,
-    /// The logs' records merged and sorted, and scratch for the sort (kept
-    /// to reuse the allocations).
+    /// The logs' records merged in bucket order (kept to reuse the
+    /// allocations), with the rays' SH bases and dL/dΦ rows they index.
     cells: Vec<CellGrad>,
-    spare_cells: Vec<CellGrad>,
-    spare_feats: Vec<FeatGrad>,
     basis: Vec<[f32; SH_COEFFS]>,
     feats: Vec<FeatGrad>,
     hs: Vec<f32>,
@@ -224,10 +219,6 @@ impl GradBuf {
 /// empties the logs.
 pub fn gather(model: &Model, logs: &mut [GradLog], out: &mut GradBuf) {
     merge_records(logs, out);
-    // Stable: records of one cell keep their order, so sums do not depend
-    // on the sort's internals.
-    bucket_sort(&mut out.cells, &mut out.spare_cells);
-    bucket_sort(&mut out.feats, &mut out.spare_feats);
     spread_cells(model, out);
     spread_features(model, out);
     for log in logs.iter_mut() {
@@ -236,29 +227,39 @@ pub fn gather(model: &Model, logs: &mut [GradLog], out: &mut GradBuf) {
     }
 }
 
-/// Moves every log's records into `out`, renumbering basis and ray indices.
+/// Moves every log's records into `out` in bucket order, renumbering their
+/// basis and ray indices into `out`'s lists.
 fn merge_records(logs: &mut [GradLog], out: &mut GradBuf) {
-    out.cells.clear();
+    let prefix = |lens: Vec<u32>| -> Vec<u32> {
+        lens.iter()
+            .scan(0u32, |acc, &n| {
+                let at = *acc;
+                *acc += n;
+                Some(at)
+            })
+            .collect()
+    };
+    let b0 = prefix(logs.iter().map(|l| l.basis.len() as u32).collect());
+    let r0 = prefix(logs.iter().map(|l| l.h_rows).collect());
+    let mut cells: Vec<&mut Vec<CellGrad>> = logs.iter_mut().map(|l| &mut l.cells).collect();
+    merge_in_buckets(&mut cells, &mut out.cells, |mut c, k| {
+        if c.basis != NO_COLOUR {
+            c.basis += b0[k];
+        }
+        c
+    });
+    let mut feats: Vec<&mut Vec<FeatGrad>> = logs.iter_mut().map(|l| &mut l.feats).collect();
+    merge_in_buckets(&mut feats, &mut out.feats, |mut f, k| {
+        f.ray += r0[k];
+        f
+    });
     out.basis.clear();
-    out.feats.clear();
     out.hs.clear();
     out.h_rows = 0;
     for log in logs.iter_mut() {
-        let b0 = out.basis.len() as u32;
-        out.cells.extend(log.cells.drain(..).map(|mut c| {
-            if c.basis != NO_COLOUR {
-                c.basis += b0;
-            }
-            c
-        }));
         out.basis.append(&mut log.basis);
-        let r0 = out.h_rows;
-        out.h_rows += std::mem::take(&mut log.h_rows);
-        out.feats.extend(log.feats.drain(..).map(|mut f| {
-            f.ray += r0;
-            f
-        }));
         out.hs.append(&mut log.hs);
+        out.h_rows += std::mem::take(&mut log.h_rows);
     }
 }
 
@@ -279,7 +280,7 @@ struct Piece {
 }
 
 /// Cuts `n_slots` slots into about `pieces` pieces of similar record counts.
-/// `records` are in bucket order ([`bucket_sort`]); `first_slot(g)` is the
+/// `records` are in bucket order ([`merge_in_buckets`]); `first_slot(g)` is the
 /// first slot whose grid point is ≥ g, `grid_of(s)` slot s's grid point; a
 /// cell reaches grid points up to `reach` above its base. A piece scans the
 /// whole buckets that hold cells able to reach it (a few records more than
@@ -328,24 +329,13 @@ fn plan<R: Record>(
 /// Cuts `data` (`stride` values per slot) into the pieces' slot ranges;
 /// `stride` 0 cuts bitmaps (64 slots per word).
 fn cut<'a, T>(mut data: &'a mut [T], pieces: &[Piece], stride: usize) -> Vec<&'a mut [T]> {
+    // Index of a slot boundary in `data`.
+    let at = |slot: usize| if stride == 0 { slot.div_ceil(64) } else { slot * stride };
     let mut out = Vec::with_capacity(pieces.len());
-    let mut at = pieces.first().map_or(0, |p| p.slots.start);
     for p in pieces {
-        let end = if stride == 0 {
-            p.slots.end.div_ceil(64)
-        } else {
-            p.slots.end * stride
-        };
-        let start = if stride == 0 {
-            p.slots.start / 64
-        } else {
-            p.slots.start * stride
-        };
-        debug_assert_eq!(start, at);
-        let (mine, rest) = std::mem::take(&mut data).split_at_mut(end - at);
+        let (mine, rest) = std::mem::take(&mut data).split_at_mut(at(p.slots.end) - at(p.slots.start));
         out.push(mine);
         data = rest;
-        at = end;
     }
     out
 }
@@ -465,12 +455,13 @@ mod tests {
     /// Random cells over `grid` points, in bucket order.
     fn random_records(n: u32, grid: u32) -> Vec<u32> {
         let mut records: Vec<u32> = (0..n).map(|i| (i.wrapping_mul(2_654_435_761) >> 7) % grid).collect();
-        bucket_sort(&mut records, &mut vec![]);
-        records
+        let mut sorted = vec![];
+        merge_in_buckets(&mut [&mut records], &mut sorted, |r, _| r);
+        sorted
     }
 
     #[test]
-    fn bucket_sort_orders_by_bucket_and_keeps_order_within_one() {
+    fn merging_orders_by_bucket_and_keeps_order_within_one() {
         let records: Vec<(u32, u32)> = (0..20_000u32).map(|i| ((i * 7919) % 100_000, i)).collect();
         #[derive(Clone, Copy)]
         struct R(u32, u32);
@@ -479,9 +470,15 @@ mod tests {
                 self.0
             }
         }
-        let mut rs: Vec<R> = records.iter().map(|&(b, i)| R(b, i)).collect();
-        bucket_sort(&mut rs, &mut vec![]);
+        // Two parts, as two tasks' logs: the second part's records come
+        // after the first's within a bucket.
+        let (a, b) = records.split_at(records.len() / 2);
+        let mut a: Vec<R> = a.iter().map(|&(b, i)| R(b, i)).collect();
+        let mut b: Vec<R> = b.iter().map(|&(b, i)| R(b, i)).collect();
+        let mut rs = vec![];
+        merge_in_buckets(&mut [&mut a, &mut b], &mut rs, |r, _| r);
         assert_eq!(rs.len(), records.len());
+        assert!(a.is_empty() && b.is_empty());
         for w in rs.windows(2) {
             let (a, b) = (bucket(w[0].0 as usize), bucket(w[1].0 as usize));
             assert!(a < b || (a == b && w[0].1 < w[1].1), "out of order");

@@ -337,7 +337,8 @@ pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: 
         0
     };
     let flat = model.features.as_ref().map(|f| Lattice::new(&f.geom));
-    let sh_colour = model.vm.is_none();
+    // SH colour gradients need the ray's basis (not VM's, not frozen ones).
+    let sh_colour = model.vm.is_none() && opts.geometry;
     let (basis, h_row) = log.begin_ray(sh_colour.then(|| sh::basis(ray.dir)), &h[..fc]);
     let dt = opts.step;
     let g3 = g.to_array();
