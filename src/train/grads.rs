@@ -4,15 +4,16 @@
 //! Each task writes what its samples owe the grids as compact records in its
 //! [`GradLog`] (per sample: its cell, the trilinear fractions, dL/draw and
 //! dL/d the colour logits), not into a buffer over every active voxel.
-//! [`gather`] then sorts all records by cell and spreads them over the cells'
+//! [`gather`] then orders all records by bucket of cells (4096 grid points)
+//! and spreads them over the cells'
 //! corners into the one shared [`GradBuf`]: the slots are cut into pieces
 //! that one task owns outright, so there are no atomics and no per-thread
 //! copies of the grid-sized buffers.
 //!
 //! Why: a full gradient buffer per thread is 470 MB on fern's 448 grid, so
 //! memory grew with the core count (7.5 GB on 16 cores), and the optimizer
-//! had to sum and clear every copy. Sorted records also spread with good
-//! locality: consecutive records touch neighbouring voxels. A sample's
+//! had to sum and clear every copy. Bucketed records also spread with good
+//! locality: consecutive records touch nearby voxels. A sample's
 //! record is 36 bytes, a batch of 4096 rays about 300 k samples (11 MB).
 
 use super::march::{corner_offsets, weights};
