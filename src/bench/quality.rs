@@ -299,6 +299,7 @@ fn radiance_key(capture_key: &str, config: &TrainConfig) -> String {
     c.feature_guide = 0.0;
     c.lr_features = 0.0;
     c.tv_features = 0.0;
+    c.freeze_geometry = false;
     let config = serde_json::to_string(&c).unwrap_or_default();
     format!("{capture_key} | radiance {config}")
 }

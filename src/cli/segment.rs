@@ -57,6 +57,18 @@ pub struct ParamArgs {
     /// the stroked surface (the paper's global matching; its rule's default).
     #[arg(long)]
     pub anywhere: bool,
+    /// Stable rule: weight λ of the graph cut's boundary term against the
+    /// feature distances [default: 0.5].
+    #[arg(long)]
+    pub cut_lambda: Option<f32>,
+    /// Stable rule: graph-cut rounds refining the region (0: no cut)
+    /// [default: 1].
+    #[arg(long)]
+    pub cut_rounds: Option<usize>,
+    /// Stable rule: colour's share of the cut's boundary term (0: features
+    /// only) [default: 1].
+    #[arg(long)]
+    pub cut_colour: Option<f32>,
 }
 
 pub fn parse_growth(s: &str) -> Result<Growth, String> {
@@ -78,6 +90,9 @@ impl ParamArgs {
         p.solid_alpha = self.solid_alpha.unwrap_or(p.solid_alpha);
         p.stroke_keep = self.stroke_keep.unwrap_or(p.stroke_keep);
         p.connected &= !self.anywhere;
+        p.cut.lambda = self.cut_lambda.unwrap_or(p.cut.lambda);
+        p.cut.rounds = self.cut_rounds.unwrap_or(p.cut.rounds);
+        p.cut.colour = self.cut_colour.unwrap_or(p.cut.colour);
         let g = &mut p.grow;
         g.sigma_f = self.sigma_f.unwrap_or(g.sigma_f);
         g.sigma_s = self.sigma_s.unwrap_or(g.sigma_s);

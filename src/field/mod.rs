@@ -248,6 +248,19 @@ impl Sampler<'_> {
             }
         }
     }
+    /// Colour at `p` averaged over the six axis directions: about the
+    /// view-independent colour (for SH up to degree 2 the degree-1 and
+    /// degree-2 terms cancel over ±x, ±y, ±z before the activation).
+    pub fn diffuse_color(&mut self, p: Vec3) -> Vec3 {
+        const DIRS: [Vec3; 6] = [Vec3::X, Vec3::NEG_X, Vec3::Y, Vec3::NEG_Y, Vec3::Z, Vec3::NEG_Z];
+        match &self.field.appearance {
+            Appearance::Sh2(g) => {
+                g.sample(p, &mut self.chan[..27]);
+                DIRS.iter().map(|&d| sh::color(&self.chan, d)).sum::<Vec3>() / 6.0
+            }
+            _ => DIRS.iter().map(|&d| self.color(p, d)).sum::<Vec3>() / 6.0,
+        }
+    }
     /// Semantic features at `p` into `out` (len = feature channels); zeros if
     /// the field has none or `p` is outside.
     pub fn features(&mut self, p: Vec3, out: &mut [f32]) {

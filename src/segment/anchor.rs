@@ -12,7 +12,7 @@
 
 use super::grow::{GrowParams, Offsets};
 use crate::field::{Bitmap, FeatureCache};
-use crate::render::Scene;
+use crate::render::{Layer, Scene};
 use glam::Vec3;
 
 /// Voxels (of `cache`'s grid) within this many voxels of a stroke's hit
@@ -24,11 +24,7 @@ const ANCHOR_RADIUS: isize = 2;
 /// surface), through the transform of the scene layer whose field owns
 /// `cache`; empty when no layer does or no point falls in the grid.
 pub fn anchor_voxels(scene: &Scene, cache: &FeatureCache, hits: &[Vec3]) -> Vec<u32> {
-    let Some(layer) = scene
-        .layers
-        .iter()
-        .find(|l| l.field.cached_features().is_some_and(|c| std::ptr::eq(&*c, cache)))
-    else {
+    let Some(layer) = layer_of(scene, cache) else {
         return vec![];
     };
     let to_local = layer.to_world.inverse();
@@ -41,6 +37,14 @@ pub fn anchor_voxels(scene: &Scene, cache: &FeatureCache, hits: &[Vec3]) -> Vec<
     out.sort_unstable();
     out.dedup();
     out
+}
+
+/// The layer of `scene` whose field owns `cache`.
+pub fn layer_of<'a>(scene: &'a Scene, cache: &FeatureCache) -> Option<&'a Layer> {
+    scene
+        .layers
+        .iter()
+        .find(|l| l.field.cached_features().is_some_and(|c| std::ptr::eq(&*c, cache)))
 }
 
 /// The seeds joined to an anchor: every seed within [`ANCHOR_RADIUS`] of an
@@ -71,6 +75,20 @@ pub fn joined_seeds(seed: &Bitmap, anchors: &[u32]) -> Option<Bitmap> {
         });
     }
     Some(joined)
+}
+
+/// The voxels of `bits` within [`ANCHOR_RADIUS`] of an anchor, ascending.
+pub fn near_anchors(bits: &Bitmap, anchors: &[u32]) -> Vec<u32> {
+    let res = bits.res();
+    let mut out: Vec<u32> = anchors
+        .iter()
+        .flat_map(|&a| block(res, a as usize, ANCHOR_RADIUS))
+        .filter(|&n| bits.get(n))
+        .map(|n| n as u32)
+        .collect();
+    out.sort_unstable();
+    out.dedup();
+    out
 }
 
 /// In-grid voxels of the cube of half-side `r` around voxel `v`.

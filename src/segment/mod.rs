@@ -5,9 +5,11 @@
 
 pub mod anchor;
 pub mod bitmap_file;
+pub mod cut;
 pub mod dense;
 pub mod grow;
 pub mod kmeans;
+pub mod maxflow;
 pub mod nnfm;
 pub mod stable;
 pub mod stroke;
@@ -20,7 +22,7 @@ pub use stroke::{
     stroke_pixels, stroke_samples, Polarity, Stroke, StrokeDoc, StrokeSamples,
 };
 
-use crate::field::{Bitmap, FeatureCache};
+use crate::field::{Bitmap, FeatureCache, Field};
 use crate::render::Scene;
 use crate::util::ms_since;
 use crate::{ensure, Result};
@@ -58,6 +60,8 @@ pub struct SegmentParams {
     pub stroke_keep: f32,
     /// Stable rule: where to look for the most stable region.
     pub stable: stable::StableParams,
+    /// Stable rule: the graph cut that refines its region ([`cut`]).
+    pub cut: cut::CutParams,
     /// Bounded and stable rules: seeds and grown voxels must be solid, i.e. stop at
     /// least this fraction of the light over one voxel (1 − exp(−σ·h), h
     /// the voxel size): the haze of a real capture has features that match
@@ -86,6 +90,7 @@ impl Default for SegmentParams {
             seed_floor: 0.1,
             solid_alpha: 0.02,
             stable: stable::StableParams::default(),
+            cut: cut::CutParams::default(),
             stroke_keep: 0.8,
             min_stroke_opacity: 0.5,
             connected: true,
@@ -189,6 +194,31 @@ impl SegmentParams {
             "theta_grow must be positive, got {}",
             g.theta_grow
         );
+        let c = &self.cut;
+        crate::ensure_within!(
+            OutOfRange,
+            c.lambda.is_finite() && c.lambda >= 0.0 && c.lambda <= 1e6,
+            "cut lambda must be in [0, 1e6], got {}",
+            c.lambda
+        );
+        crate::ensure_within!(
+            OutOfRange,
+            c.colour.is_finite() && c.colour >= 0.0 && c.colour <= 1e3,
+            "cut colour weight must be in [0, 1000], got {}",
+            c.colour
+        );
+        crate::ensure_within!(
+            OutOfRange,
+            c.rounds <= 20,
+            "cut rounds must be at most 20, got {}",
+            c.rounds
+        );
+        crate::ensure_within!(
+            OutOfRange,
+            (1..=256).contains(&c.background_k),
+            "cut background centres must be 1..=256, got {}",
+            c.background_k
+        );
         Ok(())
     }
 }
@@ -200,6 +230,8 @@ pub struct Timings {
     pub kmeans_ms: f64,
     pub nnfm_ms: f64,
     pub grow_ms: f64,
+    /// Stable rule: the graph cut's refinement.
+    pub cut_ms: f64,
     pub grow_steps: usize,
     pub stroke_pixels: usize,
     pub seed_voxels: usize,
@@ -210,7 +242,7 @@ pub struct Timings {
 
 impl Timings {
     pub fn total_ms(&self) -> f64 {
-        self.stroke_features_ms + self.kmeans_ms + self.nnfm_ms + self.grow_ms
+        self.stroke_features_ms + self.kmeans_ms + self.nnfm_ms + self.grow_ms + self.cut_ms
     }
 }
 
@@ -254,14 +286,16 @@ pub fn region_from_features(
     p: &SegmentParams,
     t: &mut Timings,
 ) -> Result<Bitmap> {
-    segment_anchored(cache, feats, dim, &[], p, t).map(|(region, _)| region)
+    segment_anchored(cache, None, feats, dim, &[], p, t).map(|(region, _)| region)
 }
 
 /// [`region_from_features`], also returning the stroke's K-means centres;
 /// with `anchors` (voxels under the stroke), only the seeds joined to them
-/// are kept.
+/// are kept, and the stable rule's region is refined by a graph cut (with
+/// the colours of `field`, the field that owns `cache`, when given).
 fn segment_anchored(
     cache: &FeatureCache,
+    field: Option<&Field>,
     feats: &[f32],
     dim: usize,
     anchors: &[u32],
@@ -293,8 +327,12 @@ fn segment_anchored(
         t.grow_ms = ms_since(t0);
         t.grow_steps = 1;
         t.threshold = s.threshold;
-        t.region_voxels = s.region.count();
-        return Ok((s.region, centres));
+        let t0 = Instant::now();
+        let hard = anchor::near_anchors(&region, anchors);
+        let region = cut_region(cache, field, &centres, &s, &hard, anchors, p).unwrap_or(s.region);
+        t.cut_ms = ms_since(t0);
+        t.region_voxels = region.count();
+        return Ok((region, centres));
     }
     let mut g = Grower::new(cache, p.grow);
     if p.grow.rule != GrowthRule::Paper {
@@ -304,6 +342,50 @@ fn segment_anchored(
     t.grow_ms = ms_since(t0);
     t.region_voxels = region.count();
     Ok((region, centres))
+}
+
+/// The stable region refined by the graph cut over the voxels its flood
+/// reached, kept where joined to the stroke; `None` when the cut is off,
+/// has nothing to tie to the stroke (`hard`: seeds under it) or leaves
+/// nothing there.
+fn cut_region(
+    cache: &FeatureCache,
+    field: Option<&Field>,
+    centres: &Centroids,
+    s: &stable::StableRegion,
+    hard: &[u32],
+    anchors: &[u32],
+    p: &SegmentParams,
+) -> Option<Bitmap> {
+    if p.cut.rounds == 0 || hard.is_empty() {
+        return None;
+    }
+    let colours = field.map(|f| voxel_colours(f, cache, &s.reached)).unwrap_or_default();
+    let input = cut::CutInput {
+        cache,
+        domain: &s.reached,
+        colours: &colours,
+        object: centres,
+        region: &s.region,
+        hard,
+    };
+    let cut = cut::refine(&input, &p.cut, p.kmeans_seed)?;
+    anchor::joined_seeds(&cut, anchors)
+}
+
+/// The diffuse colour of `field` at each of `voxels` (of `cache`'s grid).
+fn voxel_colours(field: &Field, cache: &FeatureCache, voxels: &[u32]) -> Vec<glam::Vec3> {
+    use rayon::prelude::*;
+    voxels
+        .par_chunks(4096)
+        .flat_map_iter(|chunk| {
+            let mut s = field.sampler();
+            chunk
+                .iter()
+                .map(|&v| s.diffuse_color(cache.geom.point_of(v as usize)))
+                .collect::<Vec<_>>()
+        })
+        .collect()
 }
 
 /// An object's mask built stroke by stroke. Positive strokes add their
@@ -448,7 +530,8 @@ fn segment_stroke(
         vec![]
     };
     t.stroke_features_ms = ms_since(t0);
-    let (region, centres) = segment_anchored(cache, &samples.features, samples.channels, &anchors, p, &mut t)?;
+    let field = anchor::layer_of(scene, cache).map(|l| &*l.field);
+    let (region, centres) = segment_anchored(cache, field, &samples.features, samples.channels, &anchors, p, &mut t)?;
     Ok((region, centres, t))
 }
 

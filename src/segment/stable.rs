@@ -66,6 +66,9 @@ impl Default for StableParams {
 pub struct StableRegion {
     pub region: Bitmap,
     pub threshold: f32,
+    /// Every voxel the flood reached (bottleneck distance ≤ `t_max`),
+    /// ascending.
+    pub reached: Vec<u32>,
 }
 
 /// Bottleneck distances, in flood order: `(b, voxel)` pairs with
@@ -150,7 +153,13 @@ pub fn stable_region(
         debug_assert!(b <= threshold);
         region.set(v as usize, true);
     }
-    StableRegion { region, threshold }
+    let mut reached: Vec<u32> = order.into_iter().map(|o| o.1).collect();
+    reached.sort_unstable();
+    StableRegion {
+        region,
+        threshold,
+        reached,
+    }
 }
 
 #[cfg(test)]

@@ -1,0 +1,293 @@
+//! Refining a stroke's region with a graph cut (Boykov & Jolly's
+//! interactive graph cuts, iterated as in GrabCut), over the solid voxels
+//! the stable flood reached.
+//!
+//! NNFM and the stable growth decide voxel by voxel from the teacher's
+//! features, which are coarse: a 224-pixel ViT sees a jar and the shelf
+//! board under it through the same few patches, so the shelf near the jar
+//! matches the stroke as well as the jar does, and a pot's shaded side
+//! matches it worse than the table next to it. The field's own colour is
+//! sharp where the features are not. The cut labels every reached voxel
+//! object or background at once, minimising
+//!
+//! E = Σ_v U_v(label) + λ Σ_{u~v, labels differ} w_uv,
+//!
+//! - U_v(object) = d(φ̂_v, stroke centres), U_v(background) = d(φ̂_v,
+//!   background centres): squared distances between unit features, the
+//!   background centres being K-means centres of the reached voxels outside
+//!   the current region (GrabCut's background model);
+//! - w_uv = exp(−‖φ̂_u − φ̂_v‖² / 2β_φ − ‖c_u − c_v‖² / 2β_c) between
+//!   6-neighbours, c the voxel's colour averaged over directions and β the
+//!   mean of each squared difference over the graph's edges (GrabCut's
+//!   contrast normalisation), so a boundary is cheap where features or
+//!   colour change;
+//! - voxels under the stroke that match it are tied to the object.
+//!
+//! Empty space costs nothing to cut through, so objects apart stay apart
+//! whatever λ is. Each round re-fits the background centres to the new
+//! background; the object is then what stays joined to the stroke.
+
+use super::kmeans::{kmeans, Centroids};
+use super::maxflow::{Graph, HARD};
+use super::nnfm::CentreSet;
+use crate::field::{Bitmap, FeatureCache};
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+/// Settings of the cut (0 rounds: no refinement).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct CutParams {
+    /// Weight λ of the boundary term against the feature distances.
+    pub lambda: f32,
+    /// Cut / re-fit rounds.
+    pub rounds: usize,
+    /// K-means centres of the background model.
+    pub background_k: usize,
+    /// Colour's share of the boundary term (0: features only).
+    pub colour: f32,
+}
+
+impl Default for CutParams {
+    fn default() -> Self {
+        CutParams {
+            lambda: 0.5,
+            rounds: 1,
+            background_k: 20,
+            colour: 1.0,
+        }
+    }
+}
+
+/// What the cut works on.
+pub struct CutInput<'a> {
+    pub cache: &'a FeatureCache,
+    /// The solid voxels the cut may label object (every other voxel is
+    /// background), ascending.
+    pub domain: &'a [u32],
+    /// Each domain voxel's colour, or empty for features only.
+    pub colours: &'a [Vec3],
+    /// The stroke's centres (the object model).
+    pub object: &'a Centroids,
+    /// The region before the cut (its complement in the domain seeds the
+    /// background model).
+    pub region: &'a Bitmap,
+    /// Domain voxels tied to the object.
+    pub hard: &'a [u32],
+}
+
+/// The refined region (a subset of the domain), or `None` when there is no
+/// background to cut against (the region is the whole domain).
+pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitmap> {
+    let cache = input.cache;
+    let n = input.domain.len();
+    let rows: Vec<usize> = input
+        .domain
+        .iter()
+        .map(|&v| cache.index.slot(v as usize).expect("domain voxels are solid"))
+        .collect();
+    let object = CentreSet::new(input.object.clone());
+    let d_obj: Vec<f32> = rows.iter().map(|&r| object.min_distance(cache, r)).collect();
+    let edges = neighbour_edges(cache, input.domain, &rows, input.colours, p);
+    let mut region: Vec<bool> = input.domain.iter().map(|&v| input.region.get(v as usize)).collect();
+    let mut changed = false;
+    for round in 0..p.rounds {
+        let background = background_centres(cache, &rows, &region, p.background_k, kmeans_seed + round as u64)?;
+        let bg = CentreSet::new(background);
+        let mut g = Graph::new(n, edges.len());
+        for (i, &r) in rows.iter().enumerate() {
+            g.add_terminal(i, bg.min_distance(cache, r), d_obj[i]);
+        }
+        for &h in input.hard {
+            if let Ok(i) = input.domain.binary_search(&h) {
+                g.add_terminal(i, HARD, 0.0);
+            }
+        }
+        for &(i, j, w) in &edges {
+            g.add_edge(i as usize, j as usize, w, w);
+        }
+        g.maxflow();
+        let next: Vec<bool> = (0..n).map(|i| g.is_source(i)).collect();
+        if next == region {
+            break;
+        }
+        region = next;
+        changed = true;
+    }
+    if !changed {
+        return Some(input.region.clone());
+    }
+    let mut out = Bitmap::new(cache.geom.res);
+    for (&v, _) in input.domain.iter().zip(&region).filter(|(_, &r)| r) {
+        out.set(v as usize, true);
+    }
+    Some(out)
+}
+
+/// K-means centres of the unit features of the domain voxels outside the
+/// region (a strided sample of at most 20k); `None` when there are none.
+fn background_centres(cache: &FeatureCache, rows: &[usize], region: &[bool], k: usize, seed: u64) -> Option<Centroids> {
+    const MAX_ROWS: usize = 20_000;
+    let outside: Vec<usize> = rows
+        .iter()
+        .zip(region)
+        .filter(|(_, &r)| !r)
+        .map(|(&row, _)| row)
+        .collect();
+    if outside.is_empty() {
+        return None;
+    }
+    let stride = outside.len().div_ceil(MAX_ROWS).max(1);
+    let c = cache.channels;
+    let mut feats = Vec::with_capacity(outside.len().div_ceil(stride) * c);
+    for &r in outside.iter().step_by(stride) {
+        let inv = cache.inv_norm[r];
+        feats.extend(cache.row(r).iter().map(|x| x * inv));
+    }
+    Some(kmeans(&feats, c, k, seed, 30))
+}
+
+/// The 6-neighbour pairs of domain voxels (node indices into `domain`)
+/// with their boundary weights λ·w_uv.
+fn neighbour_edges(
+    cache: &FeatureCache,
+    domain: &[u32],
+    rows: &[usize],
+    colours: &[Vec3],
+    p: &CutParams,
+) -> Vec<(u32, u32, f32)> {
+    let res = cache.geom.res;
+    let strides = [1, res[0], res[0] * res[1]];
+    let mut node_of_row = vec![u32::MAX; cache.len()];
+    for (i, &r) in rows.iter().enumerate() {
+        node_of_row[r] = i as u32;
+    }
+    let mut pairs: Vec<(u32, u32, f32, f32)> = vec![];
+    for (i, &v) in domain.iter().enumerate() {
+        let c = cache.geom.coords(v as usize);
+        for axis in 0..3 {
+            if c[axis] + 1 >= res[axis] {
+                continue;
+            }
+            let Some(r) = cache.index.slot(v as usize + strides[axis]) else {
+                continue;
+            };
+            let j = node_of_row[r];
+            if j == u32::MAX {
+                continue;
+            }
+            let j = j as usize;
+            let df = unit_distance(cache, rows[i], rows[j]);
+            let dc = if colours.is_empty() {
+                0.0
+            } else {
+                (colours[i] - colours[j]).length_squared()
+            };
+            pairs.push((i as u32, j as u32, df, dc));
+        }
+    }
+    let m = pairs.len().max(1) as f64;
+    let mean = |f: fn(&(u32, u32, f32, f32)) -> f32| (pairs.iter().map(|e| f(e) as f64).sum::<f64>() / m) as f32;
+    let (beta_f, beta_c) = (mean(|e| e.2).max(1e-6), mean(|e| e.3).max(1e-6));
+    let colour = if colours.is_empty() { 0.0 } else { p.colour };
+    pairs
+        .into_iter()
+        .map(|(i, j, df, dc)| {
+            let w = (-df / (2.0 * beta_f) - colour * dc / (2.0 * beta_c)).exp();
+            (i, j, p.lambda * w)
+        })
+        .collect()
+}
+
+/// ‖φ̂_a − φ̂_b‖² between two cache rows' unit features.
+fn unit_distance(cache: &FeatureCache, a: usize, b: usize) -> f32 {
+    let (ia, ib) = (cache.inv_norm[a], cache.inv_norm[b]);
+    cache
+        .row(a)
+        .iter()
+        .zip(cache.row(b))
+        .map(|(x, y)| {
+            let d = x * ia - y * ib;
+            d * d
+        })
+        .sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::{Aabb, FieldBuilder};
+
+    /// A solid bar along x: red then blue from x = 13.5 on (a sharp colour
+    /// edge), with coarse features that blur the boundary: one feature up to
+    /// x = 11, another from x = 16 on, and between them (x 12–15) a feature
+    /// exactly between the two, as a coarse teacher gives at a boundary.
+    fn bar() -> crate::field::Field {
+        FieldBuilder::new(Aabb::new(Vec3::ZERO, Vec3::new(23.0, 7.0, 7.0)), [24, 8, 8]).build(
+            |_| 50.0,
+            |p| if p.x < 13.5 { Vec3::X } else { Vec3::Z },
+            Some((2, &|p: Vec3, out: &mut [f32]| {
+                let f = if p.x < 11.5 {
+                    [1.0, 0.0]
+                } else if p.x < 15.5 {
+                    [0.5f32.sqrt(); 2]
+                } else {
+                    [0.0, 1.0]
+                };
+                out.copy_from_slice(&f);
+            })),
+        )
+    }
+
+    fn xs(bits: &Bitmap, res: [usize; 3]) -> std::collections::BTreeSet<usize> {
+        bits.ones().map(|v| v % res[0]).collect()
+    }
+
+    #[test]
+    fn the_cut_moves_a_blurred_boundary_to_the_colour_edge() {
+        let field = bar();
+        let cache = FeatureCache::build(&field).unwrap();
+        let res = cache.geom.res;
+        let domain: Vec<u32> = cache.voxels.clone();
+        assert_eq!(domain.len(), 24 * 8 * 8);
+        let mut s = field.sampler();
+        let colours: Vec<Vec3> = domain
+            .iter()
+            .map(|&v| s.diffuse_color(cache.geom.point_of(v as usize)))
+            .collect();
+        // The region before the cut runs to the feature edge at x = 16.
+        let region = Bitmap::from_fn(res, |v| v % res[0] < 16);
+        let hard: Vec<u32> = domain.iter().copied().filter(|&v| v as usize % res[0] == 0).collect();
+        let object = Centroids {
+            dim: 2,
+            data: vec![1.0, 0.0],
+        };
+        let input = CutInput {
+            cache: &cache,
+            domain: &domain,
+            colours: &colours,
+            object: &object,
+            region: &region,
+            hard: &hard,
+        };
+        let p = CutParams {
+            background_k: 1,
+            ..Default::default()
+        };
+        // x 12–15 are as far from the object as from the background: the
+        // boundary term decides, and the colour edge is the cheapest place,
+        // though the features do not change there.
+        let cut = refine(&input, &p, 0).unwrap();
+        assert_eq!(xs(&cut, res), (0..14).collect());
+        assert_eq!(cut.count(), 14 * 64, "whole slices");
+        // Without colour only the feature edges are cheap: x 11|12 and
+        // 15|16, equally.
+        let cut = refine(&input, &CutParams { colour: 0.0, ..p }, 0).unwrap();
+        let kept = xs(&cut, res);
+        assert!(kept == (0..12).collect() || kept == (0..16).collect(), "{kept:?}");
+        // No background left to cut against: nothing to refine.
+        let all = Bitmap::from_fn(res, |_| true);
+        let input = CutInput { region: &all, ..input };
+        assert!(refine(&input, &p, 0).is_none());
+    }
+}

@@ -1,0 +1,577 @@
+//! Minimum s–t cut of a sparse graph: the Boykov–Kolmogorov max-flow
+//! algorithm ("An Experimental Comparison of Min-Cut/Max-Flow Algorithms
+//! for Energy Minimization in Vision", PAMI 2004), the standard solver for
+//! the grid-shaped graphs of interactive segmentation.
+//!
+//! Two search trees grow from the source and the sink through unsaturated
+//! arcs; where they touch, flow is pushed along the path found, the arcs it
+//! saturates orphan their subtrees, and orphans are adopted by another node
+//! of their tree or freed. The trees are reused from path to path, which is
+//! what makes the method fast on images and voxel grids. Nodes keep their
+//! distance to their terminal and a timestamp of when it was last checked,
+//! so that adoption prefers short paths (the paper's heuristic).
+//!
+//! Capacities are `f32`; a terminal capacity of [`HARD`] ties a node to its
+//! terminal for good.
+
+use std::collections::VecDeque;
+
+/// A terminal capacity larger than any cut the caller can build: a hard
+/// constraint.
+pub const HARD: f32 = 1e20;
+
+const NONE: u32 = u32::MAX;
+/// `parent` of a node whose parent is its terminal.
+const TERMINAL: u32 = u32::MAX - 1;
+/// `parent` of an orphan (while orphans are being adopted).
+const ORPHAN: u32 = u32::MAX - 2;
+
+#[derive(Clone, Copy)]
+struct Node {
+    /// First outgoing arc, or `NONE`.
+    first: u32,
+    /// Arc to the parent (from this node), `TERMINAL`, `ORPHAN` or `NONE`
+    /// (a free node, in neither tree).
+    parent: u32,
+    /// Residual capacity from the source (> 0) or to the sink (< 0).
+    tr_cap: f32,
+    /// In the sink's tree (meaningful only when `parent != NONE`).
+    sink: bool,
+    /// When `dist` was last known to be right, and the distance to the
+    /// terminal then.
+    ts: u32,
+    dist: u32,
+}
+
+#[derive(Clone, Copy)]
+struct Arc {
+    head: u32,
+    next: u32,
+    r_cap: f32,
+}
+
+/// A graph with terminal links and symmetric pairs of arcs.
+pub struct Graph {
+    nodes: Vec<Node>,
+    /// Arcs in pairs: arc `a` and its reverse `a ^ 1`.
+    arcs: Vec<Arc>,
+    flow: f64,
+    time: u32,
+    active: VecDeque<u32>,
+    orphans: Vec<u32>,
+}
+
+impl Graph {
+    pub fn new(nodes: usize, edges_hint: usize) -> Self {
+        assert!(nodes < ORPHAN as usize, "too many nodes for a cut graph");
+        Graph {
+            nodes: vec![
+                Node {
+                    first: NONE,
+                    parent: NONE,
+                    tr_cap: 0.0,
+                    sink: false,
+                    ts: 0,
+                    dist: 0,
+                };
+                nodes
+            ],
+            arcs: Vec::with_capacity(2 * edges_hint),
+            flow: 0.0,
+            time: 0,
+            active: VecDeque::new(),
+            orphans: vec![],
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.nodes.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    /// Adds capacities `source` (cut when `i` ends on the sink side) and
+    /// `sink` (cut when it ends on the source side); both ≥ 0.
+    pub fn add_terminal(&mut self, i: usize, source: f32, sink: f32) {
+        debug_assert!(source >= 0.0 && sink >= 0.0);
+        let n = &mut self.nodes[i];
+        // Only the difference matters to the cut; the common part is flow
+        // already pushed.
+        let delta = n.tr_cap;
+        let (mut s, mut t) = (source, sink);
+        if delta > 0.0 {
+            s += delta;
+        } else {
+            t -= delta;
+        }
+        self.flow += s.min(t) as f64;
+        n.tr_cap = s - t;
+    }
+
+    /// Adds an edge with capacity `cap` from `i` to `j` and `rev_cap` back.
+    pub fn add_edge(&mut self, i: usize, j: usize, cap: f32, rev_cap: f32) {
+        debug_assert!(i != j && cap >= 0.0 && rev_cap >= 0.0);
+        let a = self.arcs.len() as u32;
+        self.arcs.push(Arc {
+            head: j as u32,
+            next: self.nodes[i].first,
+            r_cap: cap,
+        });
+        self.arcs.push(Arc {
+            head: i as u32,
+            next: self.nodes[j].first,
+            r_cap: rev_cap,
+        });
+        self.nodes[i].first = a;
+        self.nodes[j].first = a + 1;
+    }
+
+    /// Runs max-flow; returns the flow, which equals the minimum cut's
+    /// capacity.
+    pub fn maxflow(&mut self) -> f64 {
+        self.init_trees();
+        while let Some(i) = self.next_active() {
+            let Some(mid) = self.grow(i) else { continue };
+            self.time += 1;
+            self.augment(mid);
+            self.adopt_orphans();
+            // `i` may still have neighbours to grow into.
+            if self.nodes[i as usize].parent != NONE {
+                self.active.push_front(i);
+            }
+        }
+        self.flow
+    }
+
+    /// After [`Graph::maxflow`]: whether node `i` is on the source side of
+    /// a minimum cut (free nodes go to the sink side).
+    pub fn is_source(&self, i: usize) -> bool {
+        let n = &self.nodes[i];
+        n.parent != NONE && !n.sink
+    }
+
+    fn init_trees(&mut self) {
+        self.active.clear();
+        for (i, n) in self.nodes.iter_mut().enumerate() {
+            if n.tr_cap != 0.0 {
+                n.parent = TERMINAL;
+                n.sink = n.tr_cap < 0.0;
+                n.ts = 0;
+                n.dist = 1;
+                self.active.push_back(i as u32);
+            } else {
+                n.parent = NONE;
+            }
+        }
+    }
+
+    /// The next active node still in a tree (free nodes left in the queue
+    /// are skipped).
+    fn next_active(&mut self) -> Option<u32> {
+        while let Some(i) = self.active.pop_front() {
+            if self.nodes[i as usize].parent != NONE {
+                return Some(i);
+            }
+        }
+        None
+    }
+
+    /// Grows the tree of `i` through its unsaturated arcs; returns the arc
+    /// from the source tree to the sink tree where the trees meet.
+    fn grow(&mut self, i: u32) -> Option<u32> {
+        let ni = self.nodes[i as usize];
+        let mut a = ni.first;
+        while a != NONE {
+            let arc = self.arcs[a as usize];
+            // Residual capacity in the direction of the tree's flow.
+            let cap = if ni.sink {
+                self.arcs[(a ^ 1) as usize].r_cap
+            } else {
+                arc.r_cap
+            };
+            if cap > 0.0 {
+                let j = arc.head as usize;
+                let nj = self.nodes[j];
+                if nj.parent == NONE {
+                    let n = &mut self.nodes[j];
+                    n.sink = ni.sink;
+                    n.parent = a ^ 1;
+                    n.ts = ni.ts;
+                    n.dist = ni.dist + 1;
+                    self.active.push_back(j as u32);
+                } else if nj.sink != ni.sink {
+                    return Some(if ni.sink { a ^ 1 } else { a });
+                } else if nj.ts <= ni.ts && nj.dist > ni.dist {
+                    // A shorter path to the terminal for j.
+                    let n = &mut self.nodes[j];
+                    n.parent = a ^ 1;
+                    n.ts = ni.ts;
+                    n.dist = ni.dist + 1;
+                }
+            }
+            a = arc.next;
+        }
+        None
+    }
+
+    /// Pushes the bottleneck flow along the path through `mid` (an arc
+    /// from a source-tree node to a sink-tree node).
+    fn augment(&mut self, mid: u32) {
+        let head = self.arcs[mid as usize].head;
+        let tail = self.arcs[(mid ^ 1) as usize].head;
+        let mut f = self.arcs[mid as usize].r_cap;
+        // Source side: flow runs parent → child, along parent ^ 1.
+        let mut i = tail;
+        loop {
+            let p = self.nodes[i as usize].parent;
+            if p == TERMINAL {
+                f = f.min(self.nodes[i as usize].tr_cap);
+                break;
+            }
+            f = f.min(self.arcs[(p ^ 1) as usize].r_cap);
+            i = self.arcs[p as usize].head;
+        }
+        // Sink side: flow runs child → parent, along parent.
+        let mut j = head;
+        loop {
+            let p = self.nodes[j as usize].parent;
+            if p == TERMINAL {
+                f = f.min(-self.nodes[j as usize].tr_cap);
+                break;
+            }
+            f = f.min(self.arcs[p as usize].r_cap);
+            j = self.arcs[p as usize].head;
+        }
+        self.arcs[mid as usize].r_cap -= f;
+        self.arcs[(mid ^ 1) as usize].r_cap += f;
+        let mut i = tail;
+        loop {
+            let p = self.nodes[i as usize].parent;
+            if p == TERMINAL {
+                let n = &mut self.nodes[i as usize];
+                n.tr_cap -= f;
+                if n.tr_cap <= 0.0 {
+                    n.tr_cap = 0.0;
+                    self.make_orphan(i);
+                }
+                break;
+            }
+            self.arcs[p as usize].r_cap += f;
+            let next = self.arcs[p as usize].head;
+            let r = &mut self.arcs[(p ^ 1) as usize].r_cap;
+            *r -= f;
+            if *r <= 0.0 {
+                *r = 0.0;
+                self.make_orphan(i);
+            }
+            i = next;
+        }
+        let mut j = head;
+        loop {
+            let p = self.nodes[j as usize].parent;
+            if p == TERMINAL {
+                let n = &mut self.nodes[j as usize];
+                n.tr_cap += f;
+                if n.tr_cap >= 0.0 {
+                    n.tr_cap = 0.0;
+                    self.make_orphan(j);
+                }
+                break;
+            }
+            self.arcs[(p ^ 1) as usize].r_cap += f;
+            let next = self.arcs[p as usize].head;
+            let r = &mut self.arcs[p as usize].r_cap;
+            *r -= f;
+            if *r <= 0.0 {
+                *r = 0.0;
+                self.make_orphan(j);
+            }
+            j = next;
+        }
+        self.flow += f as f64;
+    }
+
+    fn make_orphan(&mut self, i: u32) {
+        self.nodes[i as usize].parent = ORPHAN;
+        self.orphans.push(i);
+    }
+
+    fn adopt_orphans(&mut self) {
+        while let Some(i) = self.orphans.pop() {
+            self.adopt(i);
+        }
+    }
+
+    /// Finds `i` a new parent in its tree (the one closest to the terminal
+    /// among neighbours whose path to the terminal is intact), or frees it.
+    fn adopt(&mut self, i: u32) {
+        let sink = self.nodes[i as usize].sink;
+        let mut best: Option<(u32, u32)> = None; // (arc, dist)
+        let mut a = self.nodes[i as usize].first;
+        while a != NONE {
+            let arc = self.arcs[a as usize];
+            // Residual capacity from the candidate parent's side.
+            let cap = if sink {
+                arc.r_cap
+            } else {
+                self.arcs[(a ^ 1) as usize].r_cap
+            };
+            let j = arc.head;
+            let nj = self.nodes[j as usize];
+            if cap > 0.0 && nj.parent != NONE && nj.sink == sink {
+                if let Some(d) = self.origin_distance(j) {
+                    if best.is_none_or(|(_, bd)| d < bd) {
+                        best = Some((a, d));
+                    }
+                }
+            }
+            a = arc.next;
+        }
+        if let Some((a, d)) = best {
+            let n = &mut self.nodes[i as usize];
+            n.parent = a;
+            n.ts = self.time;
+            n.dist = d + 1;
+            return;
+        }
+        // No parent: free i; neighbours that could regrow into it become
+        // active, and its children become orphans.
+        self.nodes[i as usize].parent = NONE;
+        let mut a = self.nodes[i as usize].first;
+        while a != NONE {
+            let arc = self.arcs[a as usize];
+            let j = arc.head;
+            let nj = self.nodes[j as usize];
+            if nj.parent != NONE && nj.sink == sink {
+                let cap = if sink {
+                    arc.r_cap
+                } else {
+                    self.arcs[(a ^ 1) as usize].r_cap
+                };
+                if cap > 0.0 {
+                    self.active.push_back(j);
+                }
+                // j's parent is i (through this arc or a parallel one).
+                if nj.parent != TERMINAL && nj.parent != ORPHAN && self.arcs[nj.parent as usize].head == i {
+                    self.make_orphan(j);
+                }
+            }
+            a = arc.next;
+        }
+    }
+
+    /// The distance of `j` to its terminal if its chain of parents reaches
+    /// it (not an orphan); marks the chain with the current time.
+    fn origin_distance(&mut self, j: u32) -> Option<u32> {
+        let mut k = j;
+        let mut d = 0u32;
+        loop {
+            let n = self.nodes[k as usize];
+            if n.ts == self.time {
+                d += n.dist;
+                break;
+            }
+            let p = n.parent;
+            d += 1;
+            if p == TERMINAL {
+                let n = &mut self.nodes[k as usize];
+                n.ts = self.time;
+                n.dist = 1;
+                break;
+            }
+            if p == ORPHAN || p == NONE {
+                return None;
+            }
+            k = self.arcs[p as usize].head;
+        }
+        // Stamp the chain with its distances.
+        let total = d;
+        let mut k = j;
+        let mut d = total;
+        while self.nodes[k as usize].ts != self.time {
+            let n = &mut self.nodes[k as usize];
+            n.ts = self.time;
+            n.dist = d;
+            d -= 1;
+            k = self.arcs[n.parent as usize].head;
+        }
+        Some(total)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::util::SplitMix64;
+
+    /// The minimum cut by enumeration of every labelling.
+    fn brute_force(n: usize, term: &[(f32, f32)], edges: &[(usize, usize, f32, f32)]) -> f64 {
+        (0u32..1 << n)
+            .map(|s| {
+                let src = |i: usize| s >> i & 1 == 1;
+                let t: f64 = (0..n).map(|i| if src(i) { term[i].1 } else { term[i].0 } as f64).sum();
+                let e: f64 = edges
+                    .iter()
+                    .map(|&(i, j, c, r)| match (src(i), src(j)) {
+                        (true, false) => c as f64,
+                        (false, true) => r as f64,
+                        _ => 0.0,
+                    })
+                    .sum();
+                t + e
+            })
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    #[test]
+    fn max_flow_equals_the_minimum_cut_on_random_graphs() {
+        let mut rng = SplitMix64::new(7);
+        for case in 0..300 {
+            let n = 1 + rng.below(11);
+            // Terminal capacities, 40 % of them zero.
+            let cap = |r: &mut SplitMix64, top: f64| if r.unit() < 0.4 { 0.0 } else { (r.unit() * top) as f32 };
+            let term: Vec<(f32, f32)> = (0..n).map(|_| (cap(&mut rng, 4.0), cap(&mut rng, 4.0))).collect();
+            let mut edges = vec![];
+            if n > 1 {
+                for _ in 0..rng.below(3 * n) {
+                    let i = rng.below(n);
+                    let j = (i + 1 + rng.below(n - 1)) % n;
+                    edges.push((i, j, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
+                }
+            }
+            let mut g = Graph::new(n, edges.len());
+            for (i, &(s, t)) in term.iter().enumerate() {
+                g.add_terminal(i, s, t);
+            }
+            for &(i, j, c, r) in &edges {
+                g.add_edge(i, j, c, r);
+            }
+            let flow = g.maxflow();
+            let best = brute_force(n, &term, &edges);
+            assert!(
+                (flow - best).abs() < 1e-3 * (1.0 + best),
+                "case {case}: flow {flow} cut {best}"
+            );
+            // The labelling the solver reports is a cut of that capacity.
+            let cut: f64 = (0..n)
+                .map(|i| if g.is_source(i) { term[i].1 } else { term[i].0 } as f64)
+                .sum::<f64>()
+                + edges
+                    .iter()
+                    .map(|&(i, j, c, r)| match (g.is_source(i), g.is_source(j)) {
+                        (true, false) => c as f64,
+                        (false, true) => r as f64,
+                        _ => 0.0,
+                    })
+                    .sum::<f64>();
+            assert!(
+                (cut - best).abs() < 1e-3 * (1.0 + best),
+                "case {case}: labelling {cut} cut {best}"
+            );
+        }
+    }
+
+    /// Max-flow by shortest augmenting paths (Edmonds–Karp) on a dense
+    /// capacity matrix with the source at n and the sink at n + 1.
+    fn edmonds_karp(n: usize, term: &[(f32, f32)], edges: &[(usize, usize, f32, f32)]) -> f64 {
+        let m = n + 2;
+        let mut cap = vec![0.0f64; m * m];
+        for (i, &(s, t)) in term.iter().enumerate() {
+            cap[n * m + i] += s as f64;
+            cap[i * m + n + 1] += t as f64;
+        }
+        for &(i, j, c, r) in edges {
+            cap[i * m + j] += c as f64;
+            cap[j * m + i] += r as f64;
+        }
+        let mut flow = 0.0;
+        loop {
+            let mut prev = vec![usize::MAX; m];
+            prev[n] = n;
+            let mut queue = std::collections::VecDeque::from([n]);
+            while let Some(u) = queue.pop_front() {
+                for v in 0..m {
+                    if prev[v] == usize::MAX && cap[u * m + v] > 1e-9 {
+                        prev[v] = u;
+                        queue.push_back(v);
+                    }
+                }
+            }
+            if prev[n + 1] == usize::MAX {
+                return flow;
+            }
+            let (mut f, mut v) = (f64::INFINITY, n + 1);
+            while v != n {
+                f = f.min(cap[prev[v] * m + v]);
+                v = prev[v];
+            }
+            let mut v = n + 1;
+            while v != n {
+                cap[prev[v] * m + v] -= f;
+                cap[v * m + prev[v]] += f;
+                v = prev[v];
+            }
+            flow += f;
+        }
+    }
+
+    #[test]
+    fn max_flow_matches_edmonds_karp_on_larger_grids() {
+        // 2D grids with random terminal links and weights: many paths share
+        // arcs, so trees are orphaned and re-adopted many times.
+        let mut rng = SplitMix64::new(11);
+        for case in 0..40 {
+            let (w, h) = (4 + rng.below(9), 4 + rng.below(9));
+            let n = w * h;
+            let term: Vec<(f32, f32)> = (0..n)
+                .map(|_| match rng.below(4) {
+                    0 => ((rng.unit() * 5.0) as f32, 0.0),
+                    1 => (0.0, (rng.unit() * 5.0) as f32),
+                    2 => ((rng.unit() * 2.0) as f32, (rng.unit() * 2.0) as f32),
+                    _ => (0.0, 0.0),
+                })
+                .collect();
+            let mut edges = vec![];
+            for y in 0..h {
+                for x in 0..w {
+                    let i = y * w + x;
+                    if x + 1 < w {
+                        edges.push((i, i + 1, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
+                    }
+                    if y + 1 < h {
+                        edges.push((i, i + w, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
+                    }
+                }
+            }
+            let mut g = Graph::new(n, edges.len());
+            for (i, &(s, t)) in term.iter().enumerate() {
+                g.add_terminal(i, s, t);
+            }
+            for &(i, j, c, r) in &edges {
+                g.add_edge(i, j, c, r);
+            }
+            let flow = g.maxflow();
+            let reference = edmonds_karp(n, &term, &edges);
+            assert!(
+                (flow - reference).abs() < 1e-3 * (1.0 + reference),
+                "case {case} ({w}x{h}): {flow} vs {reference}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_chain_is_cut_at_its_weakest_link() {
+        // source → 0 — 1 — 2 — 3 → sink, link 1–2 the weakest.
+        let mut g = Graph::new(4, 3);
+        g.add_terminal(0, HARD, 0.0);
+        g.add_terminal(3, 0.0, HARD);
+        for (i, c) in [(0, 5.0), (1, 1.5), (2, 4.0)] {
+            g.add_edge(i, i + 1, c, c);
+        }
+        assert!((g.maxflow() - 1.5).abs() < 1e-9);
+        let sides: Vec<bool> = (0..4).map(|i| g.is_source(i)).collect();
+        assert_eq!(sides, [true, true, false, false]);
+    }
+}
