@@ -61,14 +61,23 @@ pub struct ParamArgs {
     /// feature distances [default: 0.5].
     #[arg(long)]
     pub cut_lambda: Option<f32>,
-    /// Stable rule: graph-cut rounds refining the region (0: no cut)
-    /// [default: 1].
+    /// Stable rule: graph-cut rounds refining the region, each re-fitting
+    /// the background model (0: no cut) [default: 2].
     #[arg(long)]
     pub cut_rounds: Option<usize>,
     /// Stable rule: colour's share of the cut's boundary term (0: features
     /// only) [default: 1].
     #[arg(long)]
     pub cut_colour: Option<f32>,
+    /// Stable rule: weight of colour in the cut's region term (0: features
+    /// only) [default: 3].
+    #[arg(long)]
+    pub cut_colour_unary: Option<f32>,
+    /// Stable rule: only voxels at least this far from the stroke's
+    /// centres (and past the stable threshold) feed the cut's background
+    /// model (0: every voxel outside the region) [default: 0.6].
+    #[arg(long)]
+    pub cut_background_min: Option<f32>,
 }
 
 pub fn parse_growth(s: &str) -> Result<Growth, String> {
@@ -93,6 +102,8 @@ impl ParamArgs {
         p.cut.lambda = self.cut_lambda.unwrap_or(p.cut.lambda);
         p.cut.rounds = self.cut_rounds.unwrap_or(p.cut.rounds);
         p.cut.colour = self.cut_colour.unwrap_or(p.cut.colour);
+        p.cut.colour_unary = self.cut_colour_unary.unwrap_or(p.cut.colour_unary);
+        p.cut.background_min = self.cut_background_min.unwrap_or(p.cut.background_min);
         let g = &mut p.grow;
         g.sigma_f = self.sigma_f.unwrap_or(g.sigma_f);
         g.sigma_s = self.sigma_s.unwrap_or(g.sigma_s);

@@ -209,6 +209,12 @@ impl SegmentParams {
         );
         crate::ensure_within!(
             OutOfRange,
+            c.colour_unary.is_finite() && c.colour_unary >= 0.0 && c.colour_unary <= 1e3,
+            "cut colour unary weight must be in [0, 1000], got {}",
+            c.colour_unary
+        );
+        crate::ensure_within!(
+            OutOfRange,
             c.rounds <= 20,
             "cut rounds must be at most 20, got {}",
             c.rounds
@@ -368,6 +374,11 @@ fn cut_region(
         object: centres,
         region: &s.region,
         hard,
+        unlike: if p.cut.background_min > 0.0 {
+            p.cut.background_min.max(s.threshold)
+        } else {
+            0.0
+        },
     };
     let cut = cut::refine(&input, &p.cut, p.kmeans_seed)?;
     anchor::joined_seeds(&cut, anchors)
