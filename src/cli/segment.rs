@@ -78,6 +78,9 @@ pub struct ParamArgs {
     /// model (0: every voxel outside the region) [default: 0.6].
     #[arg(long)]
     pub cut_background_min: Option<f32>,
+    /// Seed of the K-means clusterings (for spread measurements) [default: 0].
+    #[arg(long)]
+    pub kmeans_seed: Option<u64>,
 }
 
 pub fn parse_growth(s: &str) -> Result<Growth, String> {
@@ -104,6 +107,7 @@ impl ParamArgs {
         p.cut.colour = self.cut_colour.unwrap_or(p.cut.colour);
         p.cut.colour_unary = self.cut_colour_unary.unwrap_or(p.cut.colour_unary);
         p.cut.background_min = self.cut_background_min.unwrap_or(p.cut.background_min);
+        p.kmeans_seed = self.kmeans_seed.unwrap_or(p.kmeans_seed);
         let g = &mut p.grow;
         g.sigma_f = self.sigma_f.unwrap_or(g.sigma_f);
         g.sigma_s = self.sigma_s.unwrap_or(g.sigma_s);
