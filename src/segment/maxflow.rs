@@ -406,6 +406,19 @@ mod tests {
     use super::*;
     use crate::util::SplitMix64;
 
+    /// A graph with these terminal capacities (source, sink) and edges
+    /// (i, j, capacity i → j, capacity j → i).
+    fn graph(term: &[(f32, f32)], edges: &[(usize, usize, f32, f32)]) -> Graph {
+        let mut g = Graph::new(term.len(), edges.len());
+        for (i, &(s, t)) in term.iter().enumerate() {
+            g.add_terminal(i, s, t);
+        }
+        for &(i, j, c, r) in edges {
+            g.add_edge(i, j, c, r);
+        }
+        g
+    }
+
     /// The minimum cut by enumeration of every labelling.
     fn brute_force(n: usize, term: &[(f32, f32)], edges: &[(usize, usize, f32, f32)]) -> f64 {
         (0u32..1 << n)
@@ -441,13 +454,7 @@ mod tests {
                     edges.push((i, j, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
                 }
             }
-            let mut g = Graph::new(n, edges.len());
-            for (i, &(s, t)) in term.iter().enumerate() {
-                g.add_terminal(i, s, t);
-            }
-            for &(i, j, c, r) in &edges {
-                g.add_edge(i, j, c, r);
-            }
+            let mut g = graph(&term, &edges);
             let flow = g.maxflow();
             let best = brute_force(n, &term, &edges);
             assert!(
@@ -545,13 +552,7 @@ mod tests {
                     }
                 }
             }
-            let mut g = Graph::new(n, edges.len());
-            for (i, &(s, t)) in term.iter().enumerate() {
-                g.add_terminal(i, s, t);
-            }
-            for &(i, j, c, r) in &edges {
-                g.add_edge(i, j, c, r);
-            }
+            let mut g = graph(&term, &edges);
             let flow = g.maxflow();
             let reference = edmonds_karp(n, &term, &edges);
             assert!(
