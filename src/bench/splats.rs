@@ -64,6 +64,8 @@ pub struct SplatBenchConfig {
     pub cache_dir: Option<PathBuf>,
     /// Where the .ply and field files go.
     pub work: PathBuf,
+    /// Segmentation parameters of the strokes.
+    pub params: SegmentParams,
 }
 
 /// One object's row.
@@ -96,7 +98,7 @@ pub fn bench_splats(cfg: &SplatBenchConfig, log: &(dyn Fn(&str) + Sync)) -> Resu
         ));
         let field = Arc::new(field);
         let oracle = oracle_features(&scene, &field, cfg.orbit)?;
-        rows.extend(score_objects(&scene, &synth, &oracle, "oracle")?);
+        rows.extend(score_objects(&scene, &synth, &oracle, "oracle", &cfg.params)?);
         if let Some(teacher) = &cfg.teacher {
             let views = orbit_views(&field, cfg.orbit, &|_, _| ())?;
             let (with, lr) = lift(
@@ -113,7 +115,7 @@ pub fn bench_splats(cfg: &SplatBenchConfig, log: &(dyn Fn(&str) + Sync)) -> Resu
                 100.0 * lr.seen as f64 / lr.points.max(1) as f64
             ));
             with.save(&cfg.work.join(format!("{name}.features.safetensors")))?;
-            rows.extend(score_objects(&scene, &synth, &with, "vit")?);
+            rows.extend(score_objects(&scene, &synth, &with, "vit", &cfg.params)?);
         }
     }
     Ok(rows)
@@ -137,7 +139,13 @@ pub fn oracle_features(scene: &demo::DemoScene, field: &Field, orbit: usize) -> 
     Ok(lift_maps(field, &cams, &maps, &|_, _| ())?.0)
 }
 
-fn score_objects(scene: &demo::DemoScene, synth: &SynthScene, field: &Field, features: &str) -> Result<Vec<SplatRow>> {
+fn score_objects(
+    scene: &demo::DemoScene,
+    synth: &SynthScene,
+    field: &Field,
+    features: &str,
+    params: &SegmentParams,
+) -> Result<Vec<SplatRow>> {
     let field = Arc::new(field.clone());
     let file = crate::splat::export::source_file(&field)?;
     let cache = field.feature_cache()?;
@@ -148,7 +156,7 @@ fn score_objects(scene: &demo::DemoScene, synth: &SynthScene, field: &Field, fea
         let Some(stroke) = crate::eval::protocol::demo_stroke(scene, &o.name) else {
             continue;
         };
-        let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, &SegmentParams::default())?;
+        let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, params)?;
         let picked = inside(&file, &field.geom(), &region);
         let truth: Vec<bool> = synth.labels.iter().map(|&l| l == o.label).collect();
         rows.push(SplatRow {

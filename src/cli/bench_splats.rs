@@ -65,6 +65,8 @@ pub struct SplatArgs {
     /// Work folder for the .ply and field files.
     #[arg(long, default_value = "target/bench-splats")]
     pub work: PathBuf,
+    #[command(flatten)]
+    pub params: super::segment::ParamArgs,
 }
 
 pub fn run_splats(a: SplatArgs) -> Result<()> {
@@ -88,6 +90,7 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
         dims: isrf::train::DEFAULT_FEATURE_DIMS,
         cache_dir: default_cache_dir(),
         work: a.work,
+        params: a.params.params()?,
     };
     let rows = bench_splats(&cfg, &|m| eprintln!("{m}"))?;
     println!(

@@ -81,6 +81,10 @@ pub struct ParamArgs {
     /// Seed of the K-means clusterings (for spread measurements) [default: 0].
     #[arg(long)]
     pub kmeans_seed: Option<u64>,
+    /// Stable rule: the most the cut's colour models may move a voxel's
+    /// balance between object and background [default: 0.5].
+    #[arg(long)]
+    pub cut_colour_margin: Option<f32>,
 }
 
 pub fn parse_growth(s: &str) -> Result<Growth, String> {
@@ -108,6 +112,7 @@ impl ParamArgs {
         p.cut.colour_unary = self.cut_colour_unary.unwrap_or(p.cut.colour_unary);
         p.cut.background_min = self.cut_background_min.unwrap_or(p.cut.background_min);
         p.kmeans_seed = self.kmeans_seed.unwrap_or(p.kmeans_seed);
+        p.cut.colour_margin = self.cut_colour_margin.unwrap_or(p.cut.colour_margin);
         let g = &mut p.grow;
         g.sigma_f = self.sigma_f.unwrap_or(g.sigma_f);
         g.sigma_s = self.sigma_s.unwrap_or(g.sigma_s);

@@ -215,6 +215,12 @@ impl SegmentParams {
         );
         crate::ensure_within!(
             OutOfRange,
+            c.colour_margin.is_finite() && c.colour_margin >= 0.0 && c.colour_margin <= 1e3,
+            "cut colour margin must be in [0, 1000], got {}",
+            c.colour_margin
+        );
+        crate::ensure_within!(
+            OutOfRange,
             c.rounds <= 20,
             "cut rounds must be at most 20, got {}",
             c.rounds
