@@ -184,8 +184,8 @@ pub fn run(a: Args) -> Result<()> {
             format!("{} steps", t.grow_steps)
         };
         println!(
-            "stroke {i} ({:?}, '{}', {} px): features {:.1} ms, k-means {:.1} ms, nnfm {:.1} ms ({} seeds), growth {:.1} ms ({growth}) -> {} voxels; total {:.1} ms",
-            s.polarity, s.object, t.stroke_pixels, t.stroke_features_ms, t.kmeans_ms, t.nnfm_ms, t.seed_voxels, t.grow_ms, t.region_voxels, t.total_ms()
+            "stroke {i} ({:?}, '{}', {} px): features {:.1} ms, k-means {:.1} ms, nnfm {:.1} ms ({} seeds), growth {:.1} ms ({growth}), cut {:.1} ms -> {} voxels; total {:.1} ms",
+            s.polarity, s.object, t.stroke_pixels, t.stroke_features_ms, t.kmeans_ms, t.nnfm_ms, t.seed_voxels, t.grow_ms, t.cut_ms, t.region_voxels, t.total_ms()
         );
     }
     let name = a.object.clone().unwrap_or_else(|| strokes[0].object.clone());

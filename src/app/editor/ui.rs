@@ -780,12 +780,13 @@ fn status_line(
         if let Some(t) = &state.last_timings {
             ui.separator();
             ui.label(format!(
-                "last stroke: features {:.0} ms · k-means {:.0} ms · NNFM {:.0} ms · growth {:.0} ms ({} steps) · total {:.0} ms",
+                "last stroke: features {:.0} ms · k-means {:.0} ms · NNFM {:.0} ms · growth {:.0} ms ({} steps) · cut {:.0} ms · total {:.0} ms",
                 t.stroke_features_ms,
                 t.kmeans_ms,
                 t.nnfm_ms,
                 t.grow_ms,
                 t.grow_steps,
+                t.cut_ms,
                 t.total_ms()
             ));
         }
