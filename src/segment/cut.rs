@@ -129,6 +129,7 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
             .iter()
             .map(|v| input.hard.binary_search(v).is_ok())
             .collect();
+        // A stroke covers a few hundred voxels of one or two materials.
         if let Some(c) = colour_centres(input.colours, &under, true, 5, kmeans_seed) {
             add_colour_distances(&mut col_obj, input.colours, &c, colour_unary);
         }
@@ -139,7 +140,14 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
     for round in 0..p.rounds {
         let seed = kmeans_seed + round as u64;
         let outside: Vec<bool> = region.iter().zip(&unlike).map(|(&r, &u)| !r && u).collect();
-        let background = background_centres(cache, &rows, &outside, p.background_k, seed)?;
+        // No background left to fit: nothing to cut against (after a round
+        // that changed the region, keep that round's result).
+        let Some(background) = background_centres(cache, &rows, &outside, p.background_k, seed) else {
+            if changed {
+                break;
+            }
+            return None;
+        };
         let bg = CentreSet::new(background);
         let d_bg = bg.min_distances(cache, &rows);
         let mut col_bg = vec![0.0f32; n];
