@@ -84,14 +84,6 @@ impl Graph {
         }
     }
 
-    pub fn len(&self) -> usize {
-        self.nodes.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.nodes.is_empty()
-    }
-
     /// Adds capacities `source` (cut when `i` ends on the sink side) and
     /// `sink` (cut when it ends on the source side); both ≥ 0.
     pub fn add_terminal(&mut self, i: usize, source: f32, sink: f32) {

@@ -487,18 +487,34 @@ impl MaskBuilder {
 /// K-means centres of the unit features of a mask's voxels (a strided
 /// sample of at most 20k of them, so that large masks stay cheap).
 fn mask_centres(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Centroids {
-    const MAX_ROWS: usize = 20_000;
     let rows: Vec<usize> = mask.ones().filter_map(|v| cache.index.slot(v)).collect();
-    let stride = rows.len().div_ceil(MAX_ROWS).max(1);
+    unit_feature_centres(cache, &rows, p.k, p.kmeans_seed, p.kmeans_iters, false)
+}
+
+/// Most cache rows [`unit_feature_centres`] clusters (a strided sample).
+const MAX_CLUSTERED_ROWS: usize = 20_000;
+
+/// K-means centres of the unit features of cache `rows` (a strided sample
+/// of at most [`MAX_CLUSTERED_ROWS`]); zero features are clustered as zero
+/// vectors with `keep_zero`, else left out.
+fn unit_feature_centres(
+    cache: &FeatureCache,
+    rows: &[usize],
+    k: usize,
+    seed: u64,
+    iters: usize,
+    keep_zero: bool,
+) -> Centroids {
+    let stride = rows.len().div_ceil(MAX_CLUSTERED_ROWS).max(1);
     let c = cache.channels;
     let mut feats = Vec::with_capacity(rows.len().div_ceil(stride) * c);
     for &r in rows.iter().step_by(stride) {
         let inv = cache.inv_norm[r];
-        if inv > 0.0 {
+        if inv > 0.0 || keep_zero {
             feats.extend(cache.row(r).iter().map(|x| x * inv));
         }
     }
-    kmeans(&feats, c, p.k, p.kmeans_seed, p.kmeans_iters)
+    kmeans(&feats, c, k, seed, iters)
 }
 
 /// The bound of a `Bounded` growth step asked for on its own (the editor's

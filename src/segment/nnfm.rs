@@ -131,6 +131,20 @@ pub fn nnfm_seed(cache: &FeatureCache, centres: &Centroids, theta: f32, floor: f
     bits
 }
 
+/// The dot products of `LANES` rows, stored channel-major in `block`,
+/// with `centre`: each lane sums its channels in order, as a plain loop
+/// over one row would (bit-identical), and the lanes vectorise.
+#[inline]
+fn lane_dots(block: &[f32], centre: &[f32]) -> [f32; LANES] {
+    let mut acc = [0.0f32; LANES];
+    for (b, &ck) in block.chunks_exact(LANES).zip(centre) {
+        for l in 0..LANES {
+            acc[l] += b[l] * ck;
+        }
+    }
+    acc
+}
+
 /// The exact test: min_k ‖φ̂ − c_k‖² < θ, as ‖φ̂‖² − 2 φ̂·c_k + ‖c_k‖².
 struct Exact<'a> {
     cache: &'a FeatureCache,
@@ -171,12 +185,7 @@ impl Exact<'_> {
         }
         let mut matched = [false; LANES];
         for k in 0..self.centres.len() {
-            let mut acc = [0.0f32; LANES];
-            for (b, &ck) in block.chunks_exact(LANES).zip(self.centres.row(k)) {
-                for l in 0..LANES {
-                    acc[l] += b[l] * ck;
-                }
-            }
+            let acc = lane_dots(block, self.centres.row(k));
             for l in 0..LANES {
                 if pending[l] && self.passes(acc[l], self.cache.inv_norm[r0 + l], k) {
                     matched[l] = true;
@@ -240,12 +249,7 @@ impl CentreSet {
                     }
                     let mut best = [f32::INFINITY; LANES];
                     for k in 0..self.centres.len() {
-                        let mut acc = [0.0f32; LANES];
-                        for (b, &ck) in block.chunks_exact(LANES).zip(self.centres.row(k)) {
-                            for l in 0..LANES {
-                                acc[l] += b[l] * ck;
-                            }
-                        }
+                        let acc = lane_dots(&block, self.centres.row(k));
                         for (l, &r) in group.iter().enumerate() {
                             let inv = cache.inv_norm[r];
                             let self_n = if inv > 0.0 { 1.0 } else { 0.0 };
@@ -290,6 +294,9 @@ pub fn nnfm_distances(cache: &FeatureCache, centres: &Centroids, floor: f32) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::field::{Aabb, FieldBuilder};
+    use crate::util::SplitMix64;
+    use glam::Vec3;
 
     #[test]
     fn batched_distances_equal_the_single_row_ones_bit_for_bit() {
@@ -325,9 +332,6 @@ mod tests {
             assert_eq!(d.to_bits(), set.min_distance(&cache, r).to_bits(), "row {r}");
         }
     }
-    use crate::field::{Aabb, FieldBuilder};
-    use crate::util::SplitMix64;
-    use glam::Vec3;
 
     /// The plain per-voxel loop the blocked, pruned version replaces.
     fn reference(cache: &FeatureCache, centres: &Centroids, theta: f32, floor: f32) -> Bitmap {
