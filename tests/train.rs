@@ -83,6 +83,7 @@ fn exact_opts(step: f32, features: bool) -> MarchOpts {
         min_transmittance: 0.0,
         features,
         geometry: true,
+        distortion: 0.0,
     }
 }
 
@@ -159,7 +160,7 @@ impl Probe {
         let mut l = 0.0f64;
         for (i, r) in self.rays.iter().enumerate() {
             let out = forward(m, r, opts, &mut s);
-            l += self.a[i].dot(out.color) as f64;
+            l += self.a[i].dot(out.color) as f64 + opts.distortion as f64 * out.distortion as f64;
             if opts.features {
                 l += self.b[i]
                     .iter()
@@ -187,6 +188,8 @@ enum Kind {
     Density,
     /// Density with the feature term of the loss on.
     DensityFeatures,
+    /// Density with the distortion loss on.
+    DensityDistortion,
     Sh,
     Features,
     /// Density, planes/lines and basis+MLP of a VM-appearance model.
@@ -213,11 +216,20 @@ fn check_gradients(degree: usize, kind: Kind) {
         let kept = m0.prune(step_of(&m0.geom), 0.1, 0);
         assert!(kept > all / 10 && kept < all * 9 / 10, "{kept} of {all} voxels kept");
     }
-    let opts = exact_opts(step_of(&m0.geom), feat);
+    let opts = MarchOpts {
+        distortion: if matches!(kind, Kind::DensityDistortion) {
+            2.0
+        } else {
+            0.0
+        },
+        ..exact_opts(step_of(&m0.geom), feat)
+    };
     let probe = Probe::new(24, 4, 20 + degree as u64);
     let g = probe.grads(&m0, &opts);
     let (analytic, eps): (&[f32], f32) = match kind {
-        Kind::Density | Kind::DensityFeatures | Kind::DensityVm | Kind::PrunedDensity => (&g.density, 1e-2),
+        Kind::Density | Kind::DensityFeatures | Kind::DensityDistortion | Kind::DensityVm | Kind::PrunedDensity => {
+            (&g.density, 1e-2)
+        }
         Kind::Sh | Kind::PrunedSh => (&g.sh, 1e-2),
         Kind::Features => (&g.feat, 1e-2),
         Kind::VmGrid => (&g.vm_grid, 1e-2),
@@ -234,7 +246,9 @@ fn check_gradients(degree: usize, kind: Kind) {
         let eval = |delta: f32| {
             let mut m = m0.clone();
             match kind {
-                Kind::Density | Kind::DensityFeatures | Kind::DensityVm => m.density[i] += delta,
+                Kind::Density | Kind::DensityFeatures | Kind::DensityDistortion | Kind::DensityVm => {
+                    m.density[i] += delta
+                }
                 Kind::PrunedDensity => m.density[m0.slots.voxels[i] as usize] += delta,
                 Kind::Sh | Kind::PrunedSh => m.sh[i] += delta,
                 Kind::Features => m.features.as_mut().unwrap().data[i] += delta,
@@ -251,6 +265,12 @@ fn check_gradients(degree: usize, kind: Kind) {
             "parameter {i}: analytic {an} vs finite difference {fd} (degree {degree})"
         );
     }
+}
+
+#[test]
+fn distortion_gradient_matches_finite_differences() {
+    check_gradients(2, Kind::DensityDistortion);
+    check_gradients(0, Kind::DensityDistortion);
 }
 
 #[test]

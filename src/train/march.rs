@@ -34,6 +34,9 @@ pub struct MarchOpts {
     /// Density and colour train: the backward pass records their
     /// gradients (off while distilling features into a frozen field).
     pub geometry: bool,
+    /// Weight of this ray's distortion loss (mip-NeRF 360's L_dist, see
+    /// [`distortion`]); 0: not computed.
+    pub distortion: f32,
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -63,8 +66,13 @@ pub struct Scratch {
     dir_enc: Vec<f32>,
     vm_rows: Vec<f32>,
     vm_tmp: Vec<f32>,
+    /// λ·dL_dist/dwᵢ per sample (backward pass).
+    dist: Vec<f32>,
     final_trans: f32,
     color: Vec3,
+    /// Length of the ray's chord through the box: distances along the ray
+    /// are measured in it for the distortion loss.
+    chord: f32,
     pub features: Vec<f32>,
 }
 
@@ -77,6 +85,8 @@ pub struct RayOut {
     pub depth: f32,
     /// Samples evaluated (for throughput figures).
     pub samples: u32,
+    /// The ray's distortion loss (unweighted; 0 unless asked for).
+    pub distortion: f32,
 }
 
 /// Precomputed per-grid constants for fast trilinear lookups.
@@ -165,10 +175,52 @@ fn softplus_d(x: f32) -> (f32, f32) {
 }
 
 /// The parameter interval and first sample index of a ray in the model's
-/// box, or `None` when it misses.
-fn span(model: &Model, ray: &Ray, step: f32) -> Option<(i64, f32)> {
+/// box, or `None` when it misses; also the chord's length.
+fn span(model: &Model, ray: &Ray, step: f32) -> Option<(i64, f32, f32)> {
     let (t0, t1) = model.geom.bounds.intersect(ray.origin, ray.dir)?;
-    Some(((t0 / step - 0.5).ceil().max(0.0) as i64, t1))
+    Some(((t0 / step - 0.5).ceil().max(0.0) as i64, t1, t1 - t0.max(0.0)))
+}
+
+/// Distortion loss of one ray (Barron et al., mip-NeRF 360, eq. 15) over
+/// its samples' weights wᵢ at positions sᵢ = tᵢ / chord, each an interval
+/// of length δ = step / chord:
+///
+/// L = Σᵢ Σⱼ wᵢ wⱼ |sᵢ − sⱼ| + ⅓ Σᵢ wᵢ² δ.
+///
+/// It is small when a ray's weight sits in one short stretch, and large
+/// when it is spread out or split between depths: semi-transparent fog
+/// and doubled surfaces that the training views cannot tell apart but a
+/// new view sees as ghosts. With the weights in depth order the double sum
+/// takes one pass with running sums.
+fn distortion<'a>(samples: impl Iterator<Item = &'a Sample>, step: f32, chord: f32) -> f32 {
+    let inv = 1.0 / chord.max(1e-12);
+    let (mut w_sum, mut ws_sum, mut loss) = (0.0f32, 0.0f32, 0.0f32);
+    for smp in samples {
+        let (w, s) = (smp.trans * smp.alpha, smp.t * inv);
+        loss += 2.0 * w * (s * w_sum - ws_sum) + w * w * step * inv / 3.0;
+        w_sum += w;
+        ws_sum += w * s;
+    }
+    loss
+}
+
+/// dL/dwᵢ of [`distortion`] for every sample, in order, into `out`:
+/// 2 Σⱼ wⱼ |sᵢ − sⱼ| + ⅔ wᵢ δ, from the running sums before and after i.
+fn distortion_grads(samples: &[Sample], step: f32, chord: f32, out: &mut Vec<f32>) {
+    let inv = 1.0 / chord.max(1e-12);
+    let (w_tot, ws_tot) = samples.iter().fold((0.0f32, 0.0f32), |(a, b), smp| {
+        let w = smp.trans * smp.alpha;
+        (a + w, b + w * smp.t * inv)
+    });
+    out.clear();
+    let (mut w_before, mut ws_before) = (0.0f32, 0.0f32);
+    for smp in samples {
+        let (w, s) = (smp.trans * smp.alpha, smp.t * inv);
+        let (w_after, ws_after) = (w_tot - w_before - w, ws_tot - ws_before - w * s);
+        out.push(2.0 * (s * w_before - ws_before + ws_after - s * w_after) + 2.0 / 3.0 * w * step * inv);
+        w_before += w;
+        ws_before += w * s;
+    }
 }
 
 /// Colour of a sample from the SH coefficients at its cell's corners
@@ -224,7 +276,9 @@ fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut
     let dt = opts.step;
     let bd = model.block_dims;
     let dir_g = ray.dir * lat.scale;
-    if let Some((mut i, t1)) = span(model, ray, dt) {
+    s.chord = 0.0;
+    if let Some((mut i, t1, chord)) = span(model, ray, dt) {
+        s.chord = chord;
         loop {
             let t = (i as f32 + 0.5) * dt;
             if t > t1 || trans < opts.min_transmittance {
@@ -322,6 +376,11 @@ fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut
         opacity: 1.0 - trans,
         depth,
         samples: s.samples.len() as u32,
+        distortion: if opts.distortion > 0.0 {
+            distortion(s.samples.iter(), dt, s.chord)
+        } else {
+            0.0
+        },
     }
 }
 
@@ -351,6 +410,15 @@ pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: 
         feature_records(ray, s, fc, flat.as_ref(), h_row, log);
         return;
     }
+    // Distortion: λ·dL/dwᵢ per sample; a weight's gradient reaches σᵢ as
+    // T₍ᵢ₊₁₎·gᵢ − Σ_{j>i} wⱼ gⱼ, like colour (where gⱼ = g·cⱼ).
+    let mut dist_g = std::mem::take(&mut s.dist);
+    dist_g.clear();
+    if opts.distortion > 0.0 {
+        distortion_grads(&s.samples, dt, s.chord, &mut dist_g);
+        dist_g.iter_mut().for_each(|d| *d *= opts.distortion);
+    }
+    let mut after_dist = 0.0f32;
     for (idx, smp) in s.samples.iter().enumerate().rev() {
         let w = smp.trans * smp.alpha;
         let t_next = smp.trans * (1.0 - smp.alpha);
@@ -360,6 +428,10 @@ pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: 
         } else {
             -g.dot(after)
         };
+        if let Some(&gd) = dist_g.get(idx) {
+            dsigma += t_next * gd - after_dist;
+            after_dist += w * gd;
+        }
         // Colour: through the sigmoid, then (SH) the basis and the weights.
         let dz = [0, 1, 2].map(|ch| w * g3[ch] * smp.color[ch] * (1.0 - smp.color[ch]));
         if let (true, Some(vm)) = (smp.shaded, &model.vm) {
@@ -391,6 +463,7 @@ pub fn backward(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut Scratch, g: 
         let colour = (smp.shaded && sh_colour).then_some((basis, dz));
         log.push_cell(smp.base, smp.frac, dsigma * dt * smp.dsig, colour);
     }
+    s.dist = dist_g;
 }
 
 /// The feature records of the last forward pass alone (frozen density and
@@ -410,4 +483,57 @@ fn feature_records(ray: &Ray, s: &Scratch, fc: usize, flat: Option<&Lattice>, h_
 /// True when grid point `i` trains (used by tests and the optimizer).
 pub fn is_active(model: &Model, i: usize) -> bool {
     bit(&model.active, i)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(t: f32, trans: f32, alpha: f32) -> Sample {
+        Sample {
+            t,
+            trans,
+            alpha,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn distortion_has_the_closed_form_of_its_definition() {
+        // One opaque sample: only the interval's own term, w²δ/3.
+        let one = [sample(0.5, 1.0, 1.0)];
+        assert!((distortion(one.iter(), 0.1, 2.0) - 0.05 / 3.0).abs() < 1e-7);
+        // Half the weight at s = 0.1, half at s = 0.4 (chord 1):
+        // 2·½·½·0.3 + ⅓(¼ + ¼)δ.
+        let two = [sample(0.1, 1.0, 0.5), sample(0.4, 0.5, 1.0)];
+        let want = 2.0 * 0.25 * 0.3 + (0.5 / 3.0) * 0.01;
+        assert!((distortion(two.iter(), 0.01, 1.0) - want).abs() < 1e-6);
+        // Spreading the same weight further apart costs more.
+        let far = [sample(0.1, 1.0, 0.5), sample(0.9, 0.5, 1.0)];
+        assert!(distortion(far.iter(), 0.01, 1.0) > distortion(two.iter(), 0.01, 1.0));
+    }
+
+    #[test]
+    fn distortion_grads_are_the_partial_derivatives_in_the_weights() {
+        // L as a function of free weights wᵢ (trans = 1, alpha = wᵢ).
+        let ts = [0.05f32, 0.2, 0.3, 0.55, 0.8];
+        let ws = [0.1f32, 0.3, 0.05, 0.4, 0.15];
+        let make = |w: &[f32]| -> Vec<Sample> { ts.iter().zip(w).map(|(&t, &w)| sample(t, 1.0, w)).collect() };
+        let (step, chord) = (0.05, 1.3);
+        let mut g = vec![];
+        distortion_grads(&make(&ws), step, chord, &mut g);
+        for i in 0..ws.len() {
+            let eps = 1e-3;
+            let (mut p, mut m) = (ws, ws);
+            p[i] += eps;
+            m[i] -= eps;
+            let fd =
+                (distortion(make(&p).iter(), step, chord) - distortion(make(&m).iter(), step, chord)) / (2.0 * eps);
+            assert!(
+                (fd - g[i]).abs() < 1e-3,
+                "w{i}: analytic {} vs finite difference {fd}",
+                g[i]
+            );
+        }
+    }
 }

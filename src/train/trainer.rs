@@ -70,6 +70,11 @@ pub struct TrainConfig {
     /// Fraction of the touched voxels whose density and colour TV is taken
     /// at each iteration (weight divided by it: the same TV in expectation).
     pub tv_keep: f32,
+    /// Weight λ of the distortion loss (mip-NeRF 360) added to the mean
+    /// colour error: it pulls each ray's weight into one short stretch, so
+    /// that fog and doubled surfaces, invisible in the training views,
+    /// do not ghost in new ones. 0: off.
+    pub distortion: f32,
     pub background: [f32; 3],
     /// Initial box; `None`: [`super::rays::default_bounds`] of the dataset.
     pub bounds: Option<[[f32; 3]; 2]>,
@@ -137,6 +142,7 @@ impl Default for TrainConfig {
             tv_sh: 0.0,
             tv_features: 0.0,
             tv_keep: 1.0,
+            distortion: 0.0,
             background: [1.0; 3],
             bounds: None,
             seed: 0,
@@ -221,6 +227,7 @@ impl TrainConfig {
             self.tv_density,
             self.tv_sh,
             self.tv_features,
+            self.distortion,
             self.feature_lambda,
             self.lr_vm_grid,
             self.lr_vm_net,
@@ -435,6 +442,12 @@ impl Trainer {
             min_transmittance: self.config.min_transmittance,
             features,
             geometry: !self.radiance_frozen(),
+            // Per ray: the loss is a mean over the batch.
+            distortion: if self.radiance_frozen() {
+                0.0
+            } else {
+                self.config.distortion / self.config.batch as f32
+            },
         }
     }
 
@@ -772,6 +785,7 @@ impl Trainer {
     pub fn render_rays(&self, rays: &[Ray], features: bool) -> (Vec<RayOut>, Vec<f32>) {
         let mut opts = self.march_opts(features && self.model.features.is_some());
         opts.weight_floor = 0.0;
+        opts.distortion = 0.0;
         let fc = if opts.features {
             self.model.features.as_ref().map_or(0, |f| f.channels)
         } else {
