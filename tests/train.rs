@@ -8,7 +8,7 @@ use isrf::camera::Ray;
 use isrf::field::{Aabb, GridGeom};
 use isrf::render::{render_rays, RenderOptions, Scene};
 use isrf::train::grads::{GradBuf, GradLog};
-use isrf::train::march::{backward, forward, MarchOpts, Scratch};
+use isrf::train::march::{backward, forward, ray_distortion, MarchOpts, Scratch};
 use isrf::train::model::{bit, res_for, Model, Slots, PRUNED_RAW};
 use isrf::train::optim::{adam_step, corrected_lr, merge_marks, AdamParams, Moments};
 use isrf::train::step_of;
@@ -160,7 +160,7 @@ impl Probe {
         let mut l = 0.0f64;
         for (i, r) in self.rays.iter().enumerate() {
             let out = forward(m, r, opts, &mut s);
-            l += self.a[i].dot(out.color) as f64 + opts.distortion as f64 * out.distortion as f64;
+            l += self.a[i].dot(out.color) as f64 + opts.distortion as f64 * ray_distortion(&s, opts.step) as f64;
             if opts.features {
                 l += self.b[i]
                     .iter()

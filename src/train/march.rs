@@ -85,8 +85,6 @@ pub struct RayOut {
     pub depth: f32,
     /// Samples evaluated (for throughput figures).
     pub samples: u32,
-    /// The ray's distortion loss (unweighted; 0 unless asked for).
-    pub distortion: f32,
 }
 
 /// Precomputed per-grid constants for fast trilinear lookups.
@@ -192,7 +190,7 @@ fn span(model: &Model, ray: &Ray, step: f32) -> Option<(i64, f32, f32)> {
 /// and doubled surfaces that the training views cannot tell apart but a
 /// new view sees as ghosts. With the weights in depth order the double sum
 /// takes one pass with running sums.
-fn distortion<'a>(samples: impl Iterator<Item = &'a Sample>, step: f32, chord: f32) -> f32 {
+fn distortion(samples: &[Sample], step: f32, chord: f32) -> f32 {
     let inv = 1.0 / chord.max(1e-12);
     let (mut w_sum, mut ws_sum, mut loss) = (0.0f32, 0.0f32, 0.0f32);
     for smp in samples {
@@ -202,6 +200,13 @@ fn distortion<'a>(samples: impl Iterator<Item = &'a Sample>, step: f32, chord: f
         ws_sum += w * s;
     }
     loss
+}
+
+/// The unweighted distortion loss of the ray of the last [`forward`] with
+/// sample spacing `step`. Training needs only its gradient (in
+/// [`backward`]); this is for checking that gradient.
+pub fn ray_distortion(s: &Scratch, step: f32) -> f32 {
+    distortion(&s.samples, step, s.chord)
 }
 
 /// dL/dwᵢ of [`distortion`] for every sample, in order, into `out`:
@@ -376,11 +381,6 @@ fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut
         opacity: 1.0 - trans,
         depth,
         samples: s.samples.len() as u32,
-        distortion: if opts.distortion > 0.0 {
-            distortion(s.samples.iter(), dt, s.chord)
-        } else {
-            0.0
-        },
     }
 }
 
@@ -502,15 +502,15 @@ mod tests {
     fn distortion_has_the_closed_form_of_its_definition() {
         // One opaque sample: only the interval's own term, w²δ/3.
         let one = [sample(0.5, 1.0, 1.0)];
-        assert!((distortion(one.iter(), 0.1, 2.0) - 0.05 / 3.0).abs() < 1e-7);
+        assert!((distortion(&one, 0.1, 2.0) - 0.05 / 3.0).abs() < 1e-7);
         // Half the weight at s = 0.1, half at s = 0.4 (chord 1):
         // 2·½·½·0.3 + ⅓(¼ + ¼)δ.
         let two = [sample(0.1, 1.0, 0.5), sample(0.4, 0.5, 1.0)];
         let want = 2.0 * 0.25 * 0.3 + (0.5 / 3.0) * 0.01;
-        assert!((distortion(two.iter(), 0.01, 1.0) - want).abs() < 1e-6);
+        assert!((distortion(&two, 0.01, 1.0) - want).abs() < 1e-6);
         // Spreading the same weight further apart costs more.
         let far = [sample(0.1, 1.0, 0.5), sample(0.9, 0.5, 1.0)];
-        assert!(distortion(far.iter(), 0.01, 1.0) > distortion(two.iter(), 0.01, 1.0));
+        assert!(distortion(&far, 0.01, 1.0) > distortion(&two, 0.01, 1.0));
     }
 
     #[test]
@@ -527,8 +527,7 @@ mod tests {
             let (mut p, mut m) = (ws, ws);
             p[i] += eps;
             m[i] -= eps;
-            let fd =
-                (distortion(make(&p).iter(), step, chord) - distortion(make(&m).iter(), step, chord)) / (2.0 * eps);
+            let fd = (distortion(&make(&p), step, chord) - distortion(&make(&m), step, chord)) / (2.0 * eps);
             assert!(
                 (fd - g[i]).abs() < 1e-3,
                 "w{i}: analytic {} vs finite difference {fd}",

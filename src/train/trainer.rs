@@ -785,7 +785,6 @@ impl Trainer {
     pub fn render_rays(&self, rays: &[Ray], features: bool) -> (Vec<RayOut>, Vec<f32>) {
         let mut opts = self.march_opts(features && self.model.features.is_some());
         opts.weight_floor = 0.0;
-        opts.distortion = 0.0;
         let fc = if opts.features {
             self.model.features.as_ref().map_or(0, |f| f.channels)
         } else {
