@@ -587,3 +587,52 @@ fn a_negative_stroke_removes_its_neighbour_not_the_object_it_resembles() {
     b.stroke(&scene, &cache, &neg, Polarity::Negative, &paper).unwrap();
     assert!(b.mask.count() < left.count() / 10, "{}", b.mask.count());
 }
+
+#[test]
+fn a_negative_stroke_removes_what_it_touched_even_when_it_looks_like_the_object() {
+    // Two touching boxes with the same features, red on the left and blue
+    // on the right: a stroke on either selects both, and a negative stroke
+    // on the right one has no features of its own to compete with. What it
+    // touched is background all the same; the cut then follows the colour
+    // edge to take the whole right box back, and keeps the left one.
+    let f = Arc::new(FieldBuilder::new(unit_box(), [24; 3]).build(
+        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
+        |p| if p.x < 0.0 { Vec3::X } else { Vec3::Z },
+        Some((3, &|_p: Vec3, out: &mut [f32]| out.copy_from_slice(&[3.0, 1.0, 0.5]))),
+    ));
+    let cache = f.feature_cache().unwrap();
+    let scene = Scene::single(f.clone());
+    let g = f.geom();
+    let solid = |v: usize| cache.index.slot(v).is_some();
+    let left = Bitmap::from_fn(g.res, |v| g.point_of(v).x < 0.0 && solid(v));
+    let both = Bitmap::from_fn(g.res, solid);
+    let params = SegmentParams::default();
+    let pos = stroke_on(&f, Vec3::new(-0.3, 0.2, 0.6), "left", Polarity::Positive);
+    let neg = stroke_on(&f, Vec3::new(0.3, 0.2, 0.6), "left", Polarity::Negative);
+    let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(g.res));
+    b.stroke(&scene, &cache, &pos, Polarity::Positive, &params).unwrap();
+    assert_eq!(b.mask, both, "the look-alike neighbour is selected too");
+    b.stroke(&scene, &cache, &neg, Polarity::Negative, &params).unwrap();
+    assert_eq!(
+        b.mask, left,
+        "the negative stroke takes the right box back, and only it"
+    );
+    // A later positive stroke on the left box keeps clear of the right one.
+    b.stroke(&scene, &cache, &pos, Polarity::Positive, &params).unwrap();
+    assert_eq!(b.mask, left, "the negative stroke is remembered");
+    // Without the cut, a voxel goes with whichever centres are nearer, and
+    // the two strokes' centres are the same up to rounding: the negative
+    // stroke keeps both boxes or takes both, never the right one alone.
+    let no_cut = SegmentParams {
+        cut: isrf::segment::cut::CutParams {
+            rounds: 0,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(g.res));
+    b.stroke(&scene, &cache, &pos, Polarity::Positive, &no_cut).unwrap();
+    assert_eq!(b.mask, both);
+    b.stroke(&scene, &cache, &neg, Polarity::Negative, &no_cut).unwrap();
+    assert!(b.mask == both || !b.mask.any(), "{}", b.mask.count());
+}

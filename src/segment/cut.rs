@@ -101,8 +101,14 @@ pub struct CutInput<'a> {
     /// The region before the cut (its complement in the domain seeds the
     /// background model).
     pub region: &'a Bitmap,
-    /// Domain voxels tied to the object.
+    /// Domain voxels tied to the object, ascending.
     pub hard: &'a [u32],
+    /// Domain voxels tied to the background (what negative strokes
+    /// touched), ascending; they win over `hard`.
+    pub background_hard: &'a [u32],
+    /// Background centres known beforehand (the negative strokes'), used
+    /// in every round next to the fitted ones.
+    pub known_background: Option<&'a Centroids>,
     /// Only voxels farther than this from the stroke's centres feed the
     /// background model.
     pub unlike: f32,
@@ -122,21 +128,19 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
     let d_obj = object.min_distances(cache, &rows);
     let unlike: Vec<bool> = d_obj.iter().map(|&d| d > input.unlike).collect();
     // A stroke covers a few hundred voxels of one or two materials.
-    let under: Vec<bool> = input
-        .domain
-        .iter()
-        .map(|v| input.hard.binary_search(v).is_ok())
-        .collect();
+    let flags = |set: &[u32]| -> Vec<bool> { input.domain.iter().map(|v| set.binary_search(v).is_ok()).collect() };
+    let (under, under_negative) = (flags(input.hard), flags(input.background_hard));
     let col_obj = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, n);
     let edges = neighbour_edges(cache, input.domain, &rows, input.colours, p);
     let mut region: Vec<bool> = input.domain.iter().map(|&v| input.region.get(v as usize)).collect();
     let mut changed = false;
     for round in 0..p.rounds {
         let seed = kmeans_seed + round as u64;
-        let outside: Vec<bool> = region.iter().zip(&unlike).map(|(&r, &u)| !r && u).collect();
+        let outside: Vec<bool> = (0..n).map(|i| (!region[i] && unlike[i]) || under_negative[i]).collect();
+        let fitted = background_centres(cache, &rows, &outside, p.background_k, seed);
         // No background left to fit: nothing to cut against (after a round
         // that changed the region, keep that round's result).
-        let Some(background) = background_centres(cache, &rows, &outside, p.background_k, seed) else {
+        let Some(background) = with_known(fitted, input.known_background) else {
             if changed {
                 break;
             }
@@ -152,8 +156,10 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
             let shift = (col_obj[i] - col_bg[i]).clamp(-p.colour_margin, p.colour_margin);
             g.add_terminal(i, d_bg[i] + (-shift).max(0.0), d_obj[i] + shift.max(0.0));
         }
-        for &h in input.hard {
-            if let Ok(i) = input.domain.binary_search(&h) {
+        for i in 0..n {
+            if under_negative[i] {
+                g.add_terminal(i, 0.0, HARD);
+            } else if under[i] {
                 g.add_terminal(i, HARD, 0.0);
             }
         }
@@ -176,6 +182,19 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
         out.set(v as usize, true);
     }
     Some(out)
+}
+
+/// The fitted background centres with the known ones appended (either may
+/// be missing; `None` when both are).
+fn with_known(fitted: Option<Centroids>, known: Option<&Centroids>) -> Option<Centroids> {
+    match (fitted, known.filter(|k| !k.is_empty())) {
+        (Some(mut f), Some(k)) if f.dim == k.dim => {
+            f.data.extend_from_slice(&k.data);
+            Some(f)
+        }
+        (None, Some(k)) => Some(k.clone()),
+        (f, _) => f,
+    }
 }
 
 /// The items whose flag is set.
@@ -362,6 +381,8 @@ mod tests {
             object: &object,
             region: &region,
             hard: &hard,
+            background_hard: &[],
+            known_background: None,
             unlike: 0.0,
         };
         // Colour in the boundary term only, first; one round (a second
