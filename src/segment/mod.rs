@@ -565,8 +565,13 @@ impl MaskBuilder {
             return Ok(false);
         };
         // A negative stroke only removes: the reached voxels the cut left
-        // out, and what then no longer joins a positive stroke.
+        // out, and what then no longer joins a positive stroke. With no
+        // positive stroke known (a mask made by earlier commands) nothing
+        // holds the object in place, so only the stroke's own region may go.
         reach.subtract(&kept)?;
+        if self.positive_anchors.is_empty() {
+            reach.intersect_with(&s.region)?;
+        }
         self.mask.subtract(&reach)?;
         if let Some(joined) = anchor::joined_seeds(&self.mask, &self.positive_anchors) {
             self.mask = joined;
