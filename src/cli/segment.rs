@@ -82,7 +82,7 @@ pub struct ParamArgs {
     #[arg(long)]
     pub kmeans_seed: Option<u64>,
     /// Stable rule: the most the cut's colour models may move a voxel's
-    /// balance between object and background [default: 0.5].
+    /// balance between object and background [default: 1].
     #[arg(long)]
     pub cut_colour_margin: Option<f32>,
 }
