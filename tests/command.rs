@@ -679,6 +679,8 @@ fn undo_keeps_a_bounded_history_and_frees_deleted_fields() {
         theta_grow: None,
         solid_alpha: None,
         connected: None,
+        cut_rounds: None,
+        cut_lambda: None,
     };
     s.apply(&k(4)).unwrap();
     s.apply(&k(5)).unwrap();
@@ -797,6 +799,32 @@ fn set_params_switches_joined_seeds_and_undo_restores_them() {
     assert_eq!(s.state().params.theta, 0.25);
     s.undo();
     assert!(s.state().params.connected);
+}
+
+/// The graph cut is switched and weighted through `set_params` (the
+/// editor's sliders send the same edit); out-of-range values are refused
+/// by name and leave the parameters as they were; undo restores them.
+#[test]
+fn set_params_sets_the_graph_cut_and_refuses_bad_values() {
+    let mut s = Session::default();
+    let defaults = s.state().params.cut;
+    assert!(defaults.rounds > 0, "the cut is on by default");
+    let run = |s: &mut Session, text: &str| -> isrf::Result<()> {
+        for c in &parse_script(text, Format::Ron).unwrap().commands {
+            isrf::command::output::perform(s, c, None)?;
+        }
+        Ok(())
+    };
+    run(&mut s, "[set_params(cut_rounds: 0, cut_lambda: 2.0)]").unwrap();
+    assert_eq!(s.state().params.cut.rounds, 0);
+    assert_eq!(s.state().params.cut.lambda, 2.0);
+    let e = run(&mut s, "[set_params(cut_rounds: 99)]").unwrap_err().to_string();
+    assert!(e.contains("cut rounds"), "{e}");
+    let e = run(&mut s, "[set_params(cut_lambda: -1.0)]").unwrap_err().to_string();
+    assert!(e.contains("cut lambda"), "{e}");
+    assert_eq!(s.state().params.cut.rounds, 0, "a refused edit changes nothing");
+    s.undo();
+    assert_eq!(s.state().params.cut, defaults);
 }
 
 /// A step that does not parse is reported as a syntax error a caller can

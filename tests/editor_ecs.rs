@@ -168,6 +168,8 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
         theta_grow: None,
         solid_alpha: None,
         connected: None,
+        cut_rounds: None,
+        cut_lambda: None,
     });
     paint(&mut app, "mug");
     let (name, before, _) = objects(&mut app)[0].clone();

@@ -288,6 +288,14 @@ pub enum Edit {
         /// look-alike in the field, as `isrf segment --anywhere`).
         #[serde(default)]
         connected: Option<bool>,
+        /// Graph-cut rounds after the growth (0: no cut; faster strokes on
+        /// large fields, coarser boundaries).
+        #[serde(default)]
+        cut_rounds: Option<usize>,
+        /// Weight λ of the cut's boundary term (higher: smoother, fewer
+        /// small islands).
+        #[serde(default)]
+        cut_lambda: Option<f32>,
     },
     /// A brush stroke for `object` (created on first positive stroke) on
     /// `field` (default: the object's field, else the first field).
@@ -446,6 +454,8 @@ impl Edit {
             theta_grow,
             solid_alpha,
             connected,
+            cut_rounds,
+            cut_lambda,
         } = self
         {
             if let Some(r) = rule {
@@ -460,6 +470,8 @@ impl Edit {
             p.grow.sigma_s = sigma_s.unwrap_or(p.grow.sigma_s);
             p.grow.tau = tau.unwrap_or(p.grow.tau);
             p.growth = growth.unwrap_or(p.growth);
+            p.cut.rounds = cut_rounds.unwrap_or(p.cut.rounds);
+            p.cut.lambda = cut_lambda.unwrap_or(p.cut.lambda);
         }
         p.validate()?;
         Ok(p)

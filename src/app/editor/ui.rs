@@ -552,6 +552,19 @@ fn tools_panel(
         ),
     );
     commit |= committed(&ui.add(egui::Slider::new(&mut p.grow.tau, 0.0..=0.99).text("τ")));
+    if p.grow.rule == GrowthRule::Stable {
+        commit |= committed(
+            &ui.add(egui::Slider::new(&mut p.cut.rounds, 0..=4).text("graph-cut rounds"))
+                .on_hover_text("Refine each stroke's region with a graph cut on features and colour; 0: off (faster strokes on large fields)"),
+        );
+        commit |= committed(
+            &ui.add(
+                egui::Slider::new(&mut p.cut.lambda, 0.01..=10.0)
+                    .logarithmic(true)
+                    .text("cut λ (boundary)"),
+            ),
+        );
+    }
     commit |= ui
         .checkbox(&mut p.connected, "only what the stroke touches")
         .on_hover_text("Keep the matches joined to the stroked surface; off: every look-alike in the field")
@@ -575,6 +588,8 @@ fn tools_panel(
             theta_grow: Some(p.grow.theta_grow),
             solid_alpha: Some(p.solid_alpha),
             connected: Some(p.connected),
+            cut_rounds: Some(p.cut.rounds),
+            cut_lambda: Some(p.cut.lambda),
         };
         // Live re-segmentation: take back the last stroke, change the
         // parameters, stroke again (all through the session, so undo works).
