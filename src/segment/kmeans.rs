@@ -2,6 +2,11 @@
 //! Deterministic for a seed; K is clamped to the number of distinct points.
 
 use crate::util::SplitMix64;
+use rayon::prelude::*;
+
+/// Points per rayon task in the distance passes: stroke-sized inputs (a few
+/// hundred points) stay on one thread, background samples (20k) split.
+const MIN_TASK: usize = 2048;
 
 /// Result: `k × dim` centres, row-major.
 #[derive(Clone, Debug, PartialEq)]
@@ -62,21 +67,28 @@ pub fn kmeans(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize)
         }
         let start = centres.len();
         centres.extend_from_slice(row(pick));
-        for (i, d) in d2.iter_mut().enumerate() {
-            *d = d.min(dist2(row(i), &centres[start..]));
-        }
+        let new = &centres[start..];
+        d2.par_iter_mut()
+            .with_min_len(MIN_TASK)
+            .enumerate()
+            .for_each(|(i, d)| *d = d.min(dist2(row(i), new)));
     }
     let kk = centres.len() / dim;
     let mut assign = vec![usize::MAX; n];
     for _ in 0..max_iters {
-        let mut changed = false;
-        for i in 0..n {
-            let (a, _) = nearest(&centres, dim, row(i));
-            if assign[i] != a {
-                assign[i] = a;
-                changed = true;
-            }
-        }
+        // Each point's nearest centre on its own (the same sums as one
+        // thread, so the result does not depend on the thread count).
+        let changed = assign
+            .par_iter_mut()
+            .with_min_len(MIN_TASK)
+            .enumerate()
+            .map(|(i, a)| {
+                let (best, _) = nearest(&centres, dim, row(i));
+                let moved = *a != best;
+                *a = best;
+                moved
+            })
+            .reduce(|| false, |x, y| x || y);
         if !changed {
             break;
         }
