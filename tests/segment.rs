@@ -17,6 +17,24 @@ fn unit_box() -> Aabb {
     Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0))
 }
 
+/// K-means over a background-sized sample (past the size where its
+/// distance passes split across threads) gives the same centres on one
+/// thread as on the default pool: the result depends on the seed only.
+#[test]
+fn kmeans_does_not_depend_on_the_thread_count() {
+    let mut rng = SplitMix64::new(5);
+    let dim = 16;
+    let pts: Vec<f32> = (0..20_000 * dim).map(|_| rng.unit() as f32).collect();
+    let many = kmeans(&pts, dim, 20, 3, 30);
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap()
+        .install(|| kmeans(&pts, dim, 20, 3, 30));
+    assert_eq!(many.len(), 20);
+    assert_eq!(many, one);
+}
+
 #[test]
 fn kmeans_finds_separated_clusters() {
     let mut rng = SplitMix64::new(3);

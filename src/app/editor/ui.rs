@@ -54,6 +54,12 @@ fn committed(r: &egui::Response) -> bool {
     r.drag_stopped() || r.lost_focus() || (r.changed() && !r.dragged() && !r.has_focus())
 }
 
+/// A logarithmic slider for a positive parameter; whether a change was
+/// committed (see [`committed`]).
+fn log_slider(ui: &mut egui::Ui, value: &mut f32, range: std::ops::RangeInclusive<f32>, text: &str) -> bool {
+    committed(&ui.add(egui::Slider::new(value, range).logarithmic(true).text(text)))
+}
+
 type ObjectQuery<'w, 's> = Query<
     'w,
     's,
@@ -527,43 +533,19 @@ fn tools_panel(
     });
     commit |= committed(&ui.add(egui::Slider::new(&mut p.k, 1..=64).text("K (clusters)")));
     commit |= committed(&ui.add(egui::Slider::new(&mut p.theta, 0.01..=2.0).text("θ (NNFM)")));
-    commit |= committed(
-        &ui.add(
-            egui::Slider::new(&mut p.grow.sigma_f, 0.01..=50.0)
-                .logarithmic(true)
-                .text("σ_φ"),
-        ),
-    );
+    commit |= log_slider(ui, &mut p.grow.sigma_f, 0.01..=50.0, "σ_φ");
     if p.grow.rule != GrowthRule::Paper {
         commit |= committed(&ui.add(egui::Slider::new(&mut p.grow.theta_grow, 0.01..=4.0).text("θ grow")));
-        commit |= committed(
-            &ui.add(
-                egui::Slider::new(&mut p.solid_alpha, 0.0..=0.5)
-                    .logarithmic(true)
-                    .text("solid α"),
-            ),
-        );
+        commit |= log_slider(ui, &mut p.solid_alpha, 0.0..=0.5, "solid α");
     }
-    commit |= committed(
-        &ui.add(
-            egui::Slider::new(&mut p.grow.sigma_s, 0.1..=10.0)
-                .logarithmic(true)
-                .text("σ_s"),
-        ),
-    );
+    commit |= log_slider(ui, &mut p.grow.sigma_s, 0.1..=10.0, "σ_s");
     commit |= committed(&ui.add(egui::Slider::new(&mut p.grow.tau, 0.0..=0.99).text("τ")));
     if p.grow.rule == GrowthRule::Stable {
         commit |= committed(
             &ui.add(egui::Slider::new(&mut p.cut.rounds, 0..=4).text("graph-cut rounds"))
                 .on_hover_text("Refine each stroke's region with a graph cut on features and colour; 0: off (faster strokes on large fields)"),
         );
-        commit |= committed(
-            &ui.add(
-                egui::Slider::new(&mut p.cut.lambda, 0.01..=10.0)
-                    .logarithmic(true)
-                    .text("cut λ (boundary)"),
-            ),
-        );
+        commit |= log_slider(ui, &mut p.cut.lambda, 0.01..=10.0, "cut λ (boundary)");
     }
     commit |= ui
         .checkbox(&mut p.connected, "only what the stroke touches")
