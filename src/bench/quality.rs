@@ -83,6 +83,9 @@ pub struct QualityConfig {
     pub feature_guide: Option<f32>,
     /// Longest side of the feature grid; `None`: the training default.
     pub feature_res: Option<usize>,
+    /// Also score each stroke's seeds and stable region, and name what
+    /// every stage selects wrongly ([`StageRow`]).
+    pub diagnose: bool,
 }
 
 impl Default for QualityConfig {
@@ -102,6 +105,7 @@ impl Default for QualityConfig {
             teacher_size: 0,
             feature_guide: None,
             feature_res: None,
+            diagnose: false,
         }
     }
 }
@@ -580,6 +584,21 @@ impl Resampled {
         b
     }
 
+    /// Selected voxels of `pred` per true label (index = label), and the
+    /// voxels of `label` it misses.
+    pub fn breakdown(&self, pred: &Bitmap, label: u8) -> (Vec<usize>, usize) {
+        let mut per = vec![0usize; 256];
+        let mut missed = 0;
+        for (&v, &l) in self.voxels.iter().zip(&self.labels) {
+            if pred.get(v as usize) {
+                per[l as usize] += 1;
+            } else if l == label {
+                missed += 1;
+            }
+        }
+        (per, missed)
+    }
+
     /// 3D IoU of `pred` (a bitmap of the field's grid) with `label` over the
     /// voxels above the floor, and over those where the true density is
     /// non-zero; and how many of them `pred` selects.
@@ -740,6 +759,23 @@ pub struct ObjectRow {
     pub nvos_negatives: Vec<String>,
     /// Stroke → mask.
     pub seconds: f64,
+    /// With `diagnose`: the selection after each stage of the stroke.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub stages: Vec<StageRow>,
+}
+
+/// What one stage of a stroke's segmentation selects, against the truth
+/// (seen voxels, as the 3D IoU).
+#[derive(Clone, Debug, Serialize)]
+pub struct StageRow {
+    pub stage: String,
+    pub selected: usize,
+    pub true_positive: usize,
+    pub missed: usize,
+    pub iou3d: f64,
+    /// The labels (object names; "unlabelled" for 0) of wrongly selected
+    /// voxels, most first.
+    pub wrong: Vec<(String, usize)>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -784,6 +820,7 @@ pub fn score_scene(
     seen_from: &[Camera],
     negatives: usize,
     params: &SegmentParams,
+    diagnose: bool,
 ) -> Result<Vec<ObjectRow>> {
     let params = *params;
     let cache = field.feature_cache()?;
@@ -838,6 +875,11 @@ pub fn score_scene(
                 .map(|&n| scene.objects[n as usize - 1].name.clone())
                 .collect(),
             seconds,
+            stages: if diagnose {
+                stage_rows(scene, &render_scene, &cache, &stroke, &resampled, label, &params)?
+            } else {
+                vec![]
+            },
         });
         let g = truths.len();
         truths.push(Arc::new(scene.labels.mask(label)));
@@ -856,6 +898,70 @@ pub fn score_scene(
             row.nvos_iou = conf[best][3 * k + 1].iou();
             row.nvos_view = view_names.get(best).cloned().unwrap_or_default();
         }
+    }
+    Ok(rows)
+}
+
+/// One stroke's selection after each stage: the NNFM seeds joined to the
+/// stroke, the stable region, and the graph cut (the defaults' result).
+fn stage_rows(
+    scene: &DemoScene,
+    render_scene: &Scene,
+    cache: &crate::field::FeatureCache,
+    stroke: &crate::segment::Stroke,
+    resampled: &Resampled,
+    label: u8,
+    params: &SegmentParams,
+) -> Result<Vec<StageRow>> {
+    let mut seeds = *params;
+    seeds.growth = crate::segment::Growth::Steps(0);
+    let mut stable = *params;
+    stable.cut.rounds = 0;
+    let mut stages = vec![("seeds".to_string(), seeds), ("stable".to_string(), stable)];
+    // The stable rule's flood cut at fixed thresholds t (no graph cut):
+    // what the best threshold would give. The window [θ + δ, t_max − δ]
+    // is the single point t, and any growth counts as stable there.
+    for t in [0.4f32, 0.5, 0.6, 0.8, 1.0, 1.2] {
+        let mut p = stable;
+        p.stable.delta = t - p.theta;
+        p.stable.t_max = t + p.stable.delta;
+        p.stable.max_growth = f32::INFINITY;
+        p.stable.flood_growth = f32::INFINITY;
+        if p.stable.delta > 0.0 {
+            stages.push((format!("flood≤{t}"), p));
+        }
+    }
+    stages.push(("cut".to_string(), *params));
+    let mut rows = vec![];
+    for (stage, p) in stages {
+        let (region, _) = region_from_stroke(render_scene, cache, stroke, &p)?;
+        let (per, missed) = resampled.breakdown(&region, label);
+        let tp = per[label as usize];
+        let selected: usize = per.iter().sum();
+        let mut wrong: Vec<(String, usize)> = per
+            .iter()
+            .enumerate()
+            .filter(|&(l, &n)| l != label as usize && n > 0)
+            .map(|(l, &n)| {
+                let name = match l {
+                    0 => "unlabelled".to_string(),
+                    l => scene
+                        .objects
+                        .get(l - 1)
+                        .map_or(format!("label {l}"), |o| o.name.clone()),
+                };
+                (name, n)
+            })
+            .collect();
+        wrong.sort_by(|a, b| b.1.cmp(&a.1));
+        rows.push(StageRow {
+            stage,
+            selected,
+            true_positive: tp,
+            missed,
+            iou3d: tp as f64 / (selected + missed).max(1) as f64,
+            wrong,
+        });
     }
     Ok(rows)
 }
@@ -903,7 +1009,16 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
         let names: Vec<String> = (0..val.len()).map(|i| format!("val/r_{i:03}")).collect();
         // A quarter of the training views decide which voxels are seen.
         let seen_from: Vec<Camera> = train.iter().step_by(4).cloned().collect();
-        let rows = score_scene(&scene, &t.field, &val, &names, &seen_from, cfg.negatives, &cfg.params)?;
+        let rows = score_scene(
+            &scene,
+            &t.field,
+            &val,
+            &names,
+            &seen_from,
+            cfg.negatives,
+            &cfg.params,
+            cfg.diagnose,
+        )?;
         runs.push(SceneRun {
             scene: name.clone(),
             demo_res: cfg.demo_res,
@@ -1063,6 +1178,29 @@ mod tests {
         assert!(dense < 0.9, "{dense}");
         let wrong = Bitmap::new([8, 8, 8]);
         assert!(r.iou(&wrong, ball).is_err(), "another grid is refused");
+    }
+
+    #[test]
+    fn breakdown_names_where_a_selection_goes_wrong_and_agrees_with_iou() {
+        let s = demo::build("tabletop", 32, 0).unwrap();
+        let r = Resampled::new(&s.field, OCCUPIED_FLOOR, &s.field, &s.labels).unwrap();
+        let (ball, floor) = (s.labels.label_of("ball").unwrap(), s.labels.label_of("floor").unwrap());
+        // The ball plus the floor: every ball voxel right, every floor voxel
+        // counted against the floor, nothing missed.
+        let mut pred = s.labels.mask(ball);
+        pred.union_with(&s.labels.mask(floor)).unwrap();
+        let (per, missed) = r.breakdown(&pred, ball);
+        assert_eq!(missed, 0);
+        assert_eq!(per[ball as usize], r.truth(ball).count());
+        assert_eq!(per[floor as usize], r.truth(floor).count());
+        assert_eq!(per.iter().sum::<usize>(), per[ball as usize] + per[floor as usize]);
+        let (iou, _, selected) = r.iou(&pred, ball).unwrap();
+        assert_eq!(selected, per.iter().sum::<usize>());
+        let from_breakdown = per[ball as usize] as f64 / (selected + missed) as f64;
+        assert!((iou - from_breakdown).abs() < 1e-12, "{iou} vs {from_breakdown}");
+        // Nothing selected: every ball voxel missed.
+        let (per, missed) = r.breakdown(&Bitmap::new(r.res), ball);
+        assert_eq!((per.iter().sum::<usize>(), missed), (0, r.truth(ball).count()));
     }
 
     #[test]

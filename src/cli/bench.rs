@@ -73,6 +73,10 @@ pub struct QualityArgs {
     /// Print the report as JSON instead of tables.
     #[arg(long)]
     pub json: bool,
+    /// Also score each stroke's seeds and stable region before the graph
+    /// cut, and name the objects every stage selects wrongly.
+    #[arg(long)]
+    pub diagnose: bool,
     /// Segmentation parameters (defaults unless given: for ablations).
     #[command(flatten)]
     pub params: super::segment::ParamArgs,
@@ -312,6 +316,7 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         teacher_size: a.teacher_size,
         feature_guide: a.feature_guide,
         feature_res: a.feature_res,
+        diagnose: a.diagnose,
         ..Default::default()
     };
     if !a.scenes.is_empty() {
@@ -343,6 +348,25 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         cfg.negatives
     );
     print!("{}", object_table(&r));
+    for o in r.objects.iter().filter(|o| !o.stages.is_empty()) {
+        for st in &o.stages {
+            let wrong: Vec<String> = st.wrong.iter().take(4).map(|(n, c)| format!("{n} {c}")).collect();
+            println!(
+                "  {:>9} {:<7} selected {:>6}, right {:>6}, missed {:>6}, 3D IoU {:.3}; wrong: {}",
+                o.object,
+                st.stage,
+                st.selected,
+                st.true_positive,
+                st.missed,
+                st.iou3d,
+                if wrong.is_empty() {
+                    "none".to_string()
+                } else {
+                    wrong.join(", ")
+                }
+            );
+        }
+    }
     println!("realistic NVOS mean 2D mIoU: {:.3}", r.nvos_mean_miou);
     println!(
         "realistic mean 2D mIoU: {:.3}, accuracy: {:.3}",
