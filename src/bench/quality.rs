@@ -876,7 +876,8 @@ pub fn score_scene(
                 .collect(),
             seconds,
             stages: if diagnose {
-                stage_rows(scene, &render_scene, &cache, &stroke, &resampled, label, &params)?
+                let truth = (&resampled, &scene.labels, label);
+                stage_rows(&render_scene, &cache, &stroke, truth, &params, &region)?
             } else {
                 vec![]
             },
@@ -903,67 +904,94 @@ pub fn score_scene(
 }
 
 /// One stroke's selection after each stage: the NNFM seeds joined to the
-/// stroke, the stable region, and the graph cut (the defaults' result).
+/// stroke, the stable region, the stable flood cut at fixed thresholds,
+/// and `cut` (the defaults' region, already computed by the caller).
 fn stage_rows(
-    scene: &DemoScene,
     render_scene: &Scene,
     cache: &crate::field::FeatureCache,
     stroke: &crate::segment::Stroke,
-    resampled: &Resampled,
-    label: u8,
+    truth: (&Resampled, &Labels, u8),
     params: &SegmentParams,
+    cut: &Bitmap,
 ) -> Result<Vec<StageRow>> {
     let mut seeds = *params;
     seeds.growth = crate::segment::Growth::Steps(0);
     let mut stable = *params;
     stable.cut.rounds = 0;
     let mut stages = vec![("seeds".to_string(), seeds), ("stable".to_string(), stable)];
-    // The stable rule's flood cut at fixed thresholds t (no graph cut):
-    // what the best threshold would give. The window [θ + δ, t_max − δ]
-    // is the single point t, and any growth counts as stable there.
-    for t in [0.4f32, 0.5, 0.6, 0.8, 1.0, 1.2] {
-        let mut p = stable;
-        p.stable.delta = t - p.theta;
-        p.stable.t_max = t + p.stable.delta;
-        p.stable.max_growth = f32::INFINITY;
-        p.stable.flood_growth = f32::INFINITY;
-        if p.stable.delta > 0.0 {
-            stages.push((format!("flood≤{t}"), p));
-        }
-    }
-    stages.push(("cut".to_string(), *params));
+    stages.extend(
+        [0.4f32, 0.5, 0.6, 0.8, 1.0, 1.2]
+            .into_iter()
+            .filter_map(|t| at_fixed_threshold(&stable, t).map(|p| (format!("flood≤{t}"), p))),
+    );
     let mut rows = vec![];
     for (stage, p) in stages {
         let (region, _) = region_from_stroke(render_scene, cache, stroke, &p)?;
-        let (per, missed) = resampled.breakdown(&region, label);
-        let tp = per[label as usize];
+        rows.push(StageRow::score(stage, &region, truth));
+    }
+    rows.push(StageRow::score("cut".into(), cut, truth));
+    Ok(rows)
+}
+
+/// The stable rule's flood cut at threshold `t` (what the best threshold
+/// would give): the window [θ + δ, t_max − δ] is the single point t, and
+/// any growth counts as stable there. `None` for t ≤ θ.
+fn at_fixed_threshold(p: &SegmentParams, t: f32) -> Option<SegmentParams> {
+    let mut p = *p;
+    p.stable.delta = t - p.theta;
+    p.stable.t_max = t + p.stable.delta;
+    p.stable.max_growth = f32::INFINITY;
+    p.stable.flood_growth = f32::INFINITY;
+    (p.stable.delta > 0.0).then_some(p)
+}
+
+impl StageRow {
+    /// Scores `region` against `label` and names the labels of what it
+    /// takes wrongly, most first.
+    fn score(stage: String, region: &Bitmap, (resampled, labels, label): (&Resampled, &Labels, u8)) -> Self {
+        let (per, missed) = resampled.breakdown(region, label);
+        let right = per[label as usize];
         let selected: usize = per.iter().sum();
-        let mut wrong: Vec<(String, usize)> = per
-            .iter()
-            .enumerate()
-            .filter(|&(l, &n)| l != label as usize && n > 0)
-            .map(|(l, &n)| {
-                let name = match l {
-                    0 => "unlabelled".to_string(),
-                    l => scene
-                        .objects
-                        .get(l - 1)
-                        .map_or(format!("label {l}"), |o| o.name.clone()),
-                };
-                (name, n)
-            })
+        let mut wrong: Vec<(String, usize)> = (0..=u8::MAX)
+            .zip(&per)
+            .filter(|&(l, &n)| l != label && n > 0)
+            .map(|(l, &n)| (labels.name_of(l).unwrap_or("unlabelled").to_string(), n))
             .collect();
         wrong.sort_by(|a, b| b.1.cmp(&a.1));
-        rows.push(StageRow {
+        StageRow {
             stage,
             selected,
-            true_positive: tp,
+            true_positive: right,
             missed,
-            iou3d: tp as f64 / (selected + missed).max(1) as f64,
+            iou3d: right as f64 / (selected + missed).max(1) as f64,
             wrong,
-        });
+        }
     }
-    Ok(rows)
+}
+
+/// With `diagnose`: one line per stroke stage.
+pub fn stage_lines(r: &QualityReport) -> Vec<String> {
+    let mut out = vec![];
+    for o in &r.objects {
+        for st in &o.stages {
+            let wrong: Vec<String> = st.wrong.iter().take(4).map(|(n, c)| format!("{n} {c}")).collect();
+            out.push(format!(
+                "  {:>9} {:<7} selected {:>6}, right {:>6}, missed {:>6}, 3D IoU {:.3}; wrong: {}",
+                o.object,
+                st.stage,
+                st.selected,
+                st.true_positive,
+                st.missed,
+                st.iou3d,
+                if wrong.is_empty() {
+                    "none".into()
+                } else {
+                    wrong.join(", ")
+                }
+            ));
+        }
+    }
+    out
 }
 
 /// Runs the whole benchmark: per scene capture (cached), field (cached),

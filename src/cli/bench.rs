@@ -303,7 +303,7 @@ fn run_train(a: TrainArgs) -> Result<()> {
 }
 
 fn run_quality(a: QualityArgs) -> Result<()> {
-    use isrf::bench::quality::{bench_quality, object_table, run_lines, QualityConfig};
+    use isrf::bench::quality::{bench_quality, object_table, run_lines, stage_lines, QualityConfig};
     let mut cfg = QualityConfig {
         demo_res: a.res,
         views: a.views,
@@ -348,24 +348,8 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         cfg.negatives
     );
     print!("{}", object_table(&r));
-    for o in r.objects.iter().filter(|o| !o.stages.is_empty()) {
-        for st in &o.stages {
-            let wrong: Vec<String> = st.wrong.iter().take(4).map(|(n, c)| format!("{n} {c}")).collect();
-            println!(
-                "  {:>9} {:<7} selected {:>6}, right {:>6}, missed {:>6}, 3D IoU {:.3}; wrong: {}",
-                o.object,
-                st.stage,
-                st.selected,
-                st.true_positive,
-                st.missed,
-                st.iou3d,
-                if wrong.is_empty() {
-                    "none".to_string()
-                } else {
-                    wrong.join(", ")
-                }
-            );
-        }
+    for l in stage_lines(&r) {
+        println!("{l}");
     }
     println!("realistic NVOS mean 2D mIoU: {:.3}", r.nvos_mean_miou);
     println!(
