@@ -5,7 +5,7 @@
 //! and the voxel is a seed when d < θ. Written as dot products so the inner
 //! loop is one multiply-add per channel.
 
-use super::kmeans::Centroids;
+use super::kmeans::{CentreBlocks, Centroids};
 use crate::field::{Bitmap, FeatureCache};
 use rayon::prelude::*;
 
@@ -206,6 +206,8 @@ impl Exact<'_> {
 pub struct CentreSet {
     pub centres: Centroids,
     norms: Vec<f32>,
+    /// The centres transposed for [`CentreSet::min_distance`].
+    blocks: CentreBlocks,
 }
 
 impl CentreSet {
@@ -213,7 +215,8 @@ impl CentreSet {
         let norms = (0..centres.len())
             .map(|k| centres.row(k).iter().map(|x| x * x).sum())
             .collect();
-        CentreSet { centres, norms }
+        let blocks = CentreBlocks::new(&centres.data, centres.dim);
+        CentreSet { centres, norms, blocks }
     }
     /// ‖φ̂ − c_k‖² of cache row `r` for every centre k, as ‖φ̂‖² − 2 φ̂·c + ‖c‖².
     fn distances<'a>(&'a self, cache: &'a FeatureCache, r: usize) -> impl Iterator<Item = f32> + 'a {
@@ -224,9 +227,21 @@ impl CentreSet {
             (self_n - 2.0 * dot * inv + self.norms[k]).max(0.0)
         })
     }
-    /// The smallest squared distance (infinity without centres).
+    /// The smallest squared distance (infinity without centres), the
+    /// centres' dot products taken side by side (bit for bit those of
+    /// [`CentreSet::distances`]: the stable flood calls this once per
+    /// voxel it reaches).
     pub fn min_distance(&self, cache: &FeatureCache, r: usize) -> f32 {
-        self.distances(cache, r).fold(f32::INFINITY, f32::min)
+        if self.centres.dim != cache.channels {
+            return self.distances(cache, r).fold(f32::INFINITY, f32::min);
+        }
+        let inv = cache.inv_norm[r];
+        let self_n = if inv > 0.0 { 1.0 } else { 0.0 };
+        let mut best = f32::INFINITY;
+        self.blocks.dots(cache.row(r), |k, dot| {
+            best = best.min((self_n - 2.0 * dot * inv + self.norms[k]).max(0.0));
+        });
+        best
     }
     /// [`CentreSet::min_distance`] of each of `rows`, bit for bit, eight
     /// rows at a time (channel-major, so the sums vectorise across rows
@@ -319,17 +334,24 @@ mod tests {
         let cache = FeatureCache::build(&field).unwrap();
         let mut rng = SplitMix64::new(3);
         let dim = cache.channels;
-        let centres = Centroids {
-            dim,
-            data: (0..5 * dim).map(|_| rng.unit() as f32 - 0.5).collect(),
-        };
-        let set = CentreSet::new(centres);
-        // Rows in any order, with repeats, and a tail shorter than a block.
-        let rows: Vec<usize> = (0..1003).map(|_| rng.below(cache.len())).collect();
-        let batch = set.min_distances(&cache, &rows);
-        assert_eq!(batch.len(), rows.len());
-        for (&r, &d) in rows.iter().zip(&batch) {
-            assert_eq!(d.to_bits(), set.min_distance(&cache, r).to_bits(), "row {r}");
+        // 5 centres: one partial block; 11: a full block and a partial one.
+        for k in [5, 11] {
+            let centres = Centroids {
+                dim,
+                data: (0..k * dim).map(|_| rng.unit() as f32 - 0.5).collect(),
+            };
+            let set = CentreSet::new(centres);
+            // Rows in any order, with repeats, and a tail shorter than a block.
+            let rows: Vec<usize> = (0..1003).map(|_| rng.below(cache.len())).collect();
+            let batch = set.min_distances(&cache, &rows);
+            assert_eq!(batch.len(), rows.len());
+            for (&r, &d) in rows.iter().zip(&batch) {
+                let single = set.min_distance(&cache, r);
+                assert_eq!(d.to_bits(), single.to_bits(), "row {r}");
+                // The single row's side-by-side centres against one at a time.
+                let plain = set.distances(&cache, r).fold(f32::INFINITY, f32::min);
+                assert_eq!(single.to_bits(), plain.to_bits(), "row {r}, {k} centres");
+            }
         }
     }
 
