@@ -54,7 +54,7 @@ impl CentreBlocks {
         let k = centres.len() / dim.max(1);
         let blocks = k.div_ceil(LANES);
         let mut data = vec![0.0; blocks * dim * LANES];
-        for (c, row) in centres.chunks_exact(dim).enumerate() {
+        for (c, row) in centres.chunks_exact(dim.max(1)).enumerate() {
             let (b, lane) = (c / LANES, c % LANES);
             for (j, &v) in row.iter().enumerate() {
                 data[(b * dim + j) * LANES + lane] = v;
@@ -67,7 +67,7 @@ impl CentreBlocks {
     /// on ties, as a scan in centre order).
     fn nearest(&self, p: &[f32]) -> (usize, f32) {
         let mut best = (0, f32::INFINITY);
-        for (b, block) in self.data.chunks_exact(self.dim * LANES).enumerate() {
+        for (b, block) in self.data.chunks_exact((self.dim * LANES).max(1)).enumerate() {
             let mut acc = [0.0f32; LANES];
             for (lanes, &x) in block.chunks_exact(LANES).zip(p) {
                 for l in 0..LANES {
@@ -87,7 +87,7 @@ impl CentreBlocks {
     /// Calls `f(k, p·c_k)` for every centre in order, each dot product
     /// summed over the channels in order (as a plain zip-sum would be).
     pub(crate) fn dots(&self, p: &[f32], mut f: impl FnMut(usize, f32)) {
-        for (b, block) in self.data.chunks_exact(self.dim * LANES).enumerate() {
+        for (b, block) in self.data.chunks_exact((self.dim * LANES).max(1)).enumerate() {
             let mut acc = [0.0f32; LANES];
             for (lanes, &x) in block.chunks_exact(LANES).zip(p) {
                 for l in 0..LANES {
@@ -213,5 +213,9 @@ mod tests {
             let p = &centres[(k - 1) * dim..];
             assert_eq!(CentreBlocks::new(&twice, dim).nearest(p), (k - 1, 0.0));
         }
+        // No channels: no centres to find, and no panic.
+        let empty = CentreBlocks::new(&[], 0);
+        assert_eq!(empty.nearest(&[]), (0, f32::INFINITY));
+        empty.dots(&[], |_, _| panic!("no centre to visit"));
     }
 }
