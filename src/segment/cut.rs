@@ -276,36 +276,46 @@ fn neighbour_edges(
     for (i, &r) in rows.iter().enumerate() {
         node_of_row[r] = i as u32;
     }
-    let mut pairs: Vec<(u32, u32, f32, f32)> = vec![];
-    for (i, &v) in domain.iter().enumerate() {
-        let c = cache.geom.coords(v as usize);
-        for axis in 0..3 {
-            if c[axis] + 1 >= res[axis] {
-                continue;
+    // In parallel over chunks of the domain, collected in order: the same
+    // pairs in the same order as one loop, so the same β and weights.
+    const CHUNK: usize = 8192;
+    let pairs: Vec<(u32, u32, f32, f32)> = domain
+        .par_chunks(CHUNK)
+        .enumerate()
+        .flat_map_iter(|(c, chunk)| {
+            let mut out = Vec::with_capacity(chunk.len() * 3);
+            for (k, &v) in chunk.iter().enumerate() {
+                let i = c * CHUNK + k;
+                let at = cache.geom.coords(v as usize);
+                for axis in 0..3 {
+                    if at[axis] + 1 >= res[axis] {
+                        continue;
+                    }
+                    let Some(r) = cache.index.slot(v as usize + strides[axis]) else {
+                        continue;
+                    };
+                    let j = node_of_row[r];
+                    if j == u32::MAX {
+                        continue;
+                    }
+                    let df = unit_distance(cache, rows[i], rows[j as usize]);
+                    let dc = if colours.is_empty() {
+                        0.0
+                    } else {
+                        (colours[i] - colours[j as usize]).length_squared()
+                    };
+                    out.push((i as u32, j, df, dc));
+                }
             }
-            let Some(r) = cache.index.slot(v as usize + strides[axis]) else {
-                continue;
-            };
-            let j = node_of_row[r];
-            if j == u32::MAX {
-                continue;
-            }
-            let j = j as usize;
-            let df = unit_distance(cache, rows[i], rows[j]);
-            let dc = if colours.is_empty() {
-                0.0
-            } else {
-                (colours[i] - colours[j]).length_squared()
-            };
-            pairs.push((i as u32, j as u32, df, dc));
-        }
-    }
+            out
+        })
+        .collect();
     let m = pairs.len().max(1) as f64;
     let mean = |f: fn(&(u32, u32, f32, f32)) -> f32| (pairs.iter().map(|e| f(e) as f64).sum::<f64>() / m) as f32;
     let (beta_f, beta_c) = (mean(|e| e.2).max(1e-6), mean(|e| e.3).max(1e-6));
     let colour = if colours.is_empty() { 0.0 } else { p.colour };
     pairs
-        .into_iter()
+        .into_par_iter()
         .map(|(i, j, df, dc)| {
             let w = (-df / (2.0 * beta_f) - colour * dc / (2.0 * beta_c)).exp();
             (i, j, p.lambda * w)
