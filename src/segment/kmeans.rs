@@ -32,7 +32,8 @@ pub fn dist2(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
 }
 
-/// Centres per block of [`CentreBlocks`]: one SIMD register of f32.
+/// Centres per block of [`CentreBlocks`]: eight f32 lanes (two SSE registers
+/// on the plain x86-64 target, one AVX register where the build enables it).
 const LANES: usize = 8;
 
 /// The centres transposed into blocks of [`LANES`] (channel-major within a
