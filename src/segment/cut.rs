@@ -276,6 +276,26 @@ fn neighbour_edges(
     for (i, &r) in rows.iter().enumerate() {
         node_of_row[r] = i as u32;
     }
+    // Domain node i (voxel v) and its +x, +y, +z neighbours in the domain.
+    let pairs_of = |i: usize, v: u32, out: &mut Vec<(u32, u32, f32, f32)>| {
+        let at = cache.geom.coords(v as usize);
+        for axis in (0..3).filter(|&a| at[a] + 1 < res[a]) {
+            let Some(r) = cache.index.slot(v as usize + strides[axis]) else {
+                continue;
+            };
+            let j = node_of_row[r] as usize;
+            if j == u32::MAX as usize {
+                continue;
+            }
+            let df = unit_distance(cache, rows[i], rows[j]);
+            let dc = if colours.is_empty() {
+                0.0
+            } else {
+                (colours[i] - colours[j]).length_squared()
+            };
+            out.push((i as u32, j as u32, df, dc));
+        }
+    };
     // In parallel over chunks of the domain, collected in order: the same
     // pairs in the same order as one loop, so the same β and weights.
     const CHUNK: usize = 8192;
@@ -285,27 +305,7 @@ fn neighbour_edges(
         .flat_map_iter(|(c, chunk)| {
             let mut out = Vec::with_capacity(chunk.len() * 3);
             for (k, &v) in chunk.iter().enumerate() {
-                let i = c * CHUNK + k;
-                let at = cache.geom.coords(v as usize);
-                for axis in 0..3 {
-                    if at[axis] + 1 >= res[axis] {
-                        continue;
-                    }
-                    let Some(r) = cache.index.slot(v as usize + strides[axis]) else {
-                        continue;
-                    };
-                    let j = node_of_row[r];
-                    if j == u32::MAX {
-                        continue;
-                    }
-                    let df = unit_distance(cache, rows[i], rows[j as usize]);
-                    let dc = if colours.is_empty() {
-                        0.0
-                    } else {
-                        (colours[i] - colours[j as usize]).length_squared()
-                    };
-                    out.push((i as u32, j, df, dc));
-                }
+                pairs_of(c * CHUNK + k, v, &mut out);
             }
             out
         })

@@ -28,7 +28,7 @@
 //! same neighbourhood as before and would be rejected again). It gives the
 //! same masks as [`grow_step_dense`], which scans the whole grid.
 
-use super::kmeans::Centroids;
+use super::kmeans::{Centroids, LANES};
 use super::nnfm::CentreSet;
 use super::Growth;
 use crate::field::{Bitmap, FeatureCache};
@@ -180,12 +180,6 @@ fn neighbour(res: [usize; 3], c: [usize; 3], d: [i64; 3]) -> Option<usize> {
     Some(x as usize + res[0] * (y as usize + res[1] * z as usize))
 }
 
-/// Neighbours whose distances are computed together: each lane is one
-/// neighbour, its squared distance summed channel by channel in the order of
-/// a plain loop (bit-identical), with the lanes' independent sums
-/// interleaved so that they do not wait on each other's additions.
-const LANES: usize = 8;
-
 /// Per-thread scratch of [`decide`]: the occupied neighbours of a voxel and
 /// their squared feature distances.
 struct Scratch {
@@ -204,7 +198,9 @@ impl Scratch {
 }
 
 /// Squared distances between unit features (‖a/‖a‖ − b/‖b‖‖² = 2 − 2 cos,
-/// 2 for a zero feature) from row `rc` to the rows of `s.hood`, into `s.df`.
+/// 2 for a zero feature) from row `rc` to the rows of `s.hood`, into `s.df`,
+/// [`LANES`] neighbours at a time (their independent sums interleaved so
+/// that they do not wait on each other's additions).
 fn hood_unit_distances(cache: &FeatureCache, rc: usize, s: &mut Scratch) {
     let fc = cache.row(rc);
     let inv_c = cache.inv_norm[rc];

@@ -32,9 +32,12 @@ pub fn dist2(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
 }
 
-/// Centres per block of [`CentreBlocks`]: eight f32 lanes (two SSE registers
-/// on the plain x86-64 target, one AVX register where the build enables it).
-const LANES: usize = 8;
+/// Width of the side-by-side distance kernels of segmentation (centres per
+/// block here, voxels per block in NNFM, neighbours per group in growth):
+/// eight f32 lanes, two SSE registers on the plain x86-64 target. Each lane
+/// sums its channels in the order of a plain loop, so results are
+/// bit-identical to it, while the compiler vectorises across the lanes.
+pub(crate) const LANES: usize = 8;
 
 /// The centres transposed into blocks of [`LANES`] (channel-major within a
 /// block, the last block padded), so that one point's distances to a
@@ -68,31 +71,33 @@ impl CentreBlocks {
     /// on ties, as a scan in centre order).
     fn nearest(&self, p: &[f32]) -> (usize, f32) {
         let mut best = (0, f32::INFINITY);
-        for (b, block) in self.data.chunks_exact((self.dim * LANES).max(1)).enumerate() {
-            let mut acc = [0.0f32; LANES];
-            for (lanes, &x) in block.chunks_exact(LANES).zip(p) {
-                for l in 0..LANES {
-                    let d = lanes[l] - x;
-                    acc[l] += d * d;
-                }
-            }
-            for (l, &d) in acc.iter().enumerate().take(self.k - b * LANES) {
+        self.sums(
+            p,
+            |c, x| (c - x) * (c - x),
+            |k, d| {
                 if d < best.1 {
-                    best = (b * LANES + l, d);
+                    best = (k, d);
                 }
-            }
-        }
+            },
+        );
         best
     }
 
     /// Calls `f(k, p·c_k)` for every centre in order, each dot product
     /// summed over the channels in order (as a plain zip-sum would be).
-    pub(crate) fn dots(&self, p: &[f32], mut f: impl FnMut(usize, f32)) {
+    pub(crate) fn dots(&self, p: &[f32], f: impl FnMut(usize, f32)) {
+        self.sums(p, |c, x| x * c, f);
+    }
+
+    /// Calls `f(k, Σ_j term(c_kj, p_j))` for every centre k in order, the
+    /// sum taken over the channels in order, a block of centres at a time.
+    #[inline(always)]
+    fn sums(&self, p: &[f32], term: impl Fn(f32, f32) -> f32, mut f: impl FnMut(usize, f32)) {
         for (b, block) in self.data.chunks_exact((self.dim * LANES).max(1)).enumerate() {
             let mut acc = [0.0f32; LANES];
             for (lanes, &x) in block.chunks_exact(LANES).zip(p) {
                 for l in 0..LANES {
-                    acc[l] += x * lanes[l];
+                    acc[l] += term(lanes[l], x);
                 }
             }
             for (l, &d) in acc.iter().enumerate().take(self.k - b * LANES) {

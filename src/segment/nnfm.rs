@@ -5,15 +5,9 @@
 //! and the voxel is a seed when d < θ. Written as dot products so the inner
 //! loop is one multiply-add per channel.
 
-use super::kmeans::{CentreBlocks, Centroids};
+use super::kmeans::{CentreBlocks, Centroids, LANES};
 use crate::field::{Bitmap, FeatureCache};
 use rayon::prelude::*;
-
-/// Voxels per block: each lane of the inner loop is one voxel, so its dot
-/// products are summed channel by channel in the same order as a plain
-/// scalar loop (bit-identical results), while the compiler vectorises across
-/// the lanes.
-const LANES: usize = 8;
 
 /// A cheap test that rules out most voxels before the exact one.
 ///
