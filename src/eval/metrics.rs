@@ -103,6 +103,92 @@ pub fn psnr(a: &[Vec3], b: &[Vec3]) -> f64 {
     }
 }
 
+/// How a render differs from its photo, split into blur and the rest: the
+/// photo blurred by the Gaussian (σx, σy pixels, each from [`BLUR_SIGMAS`])
+/// that the render is closest to, and the PSNR against that blurred photo.
+/// A render that is the photo seen through a soft lens scores high against
+/// the blurred photo; misplaced edges, floaters and colour errors do not go
+/// away by blurring. Blur along one image axis only is what a field shows
+/// when its depth is too coarse for the views offset along that axis (a
+/// thin surface is smeared across the parallax of one depth cell).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct BlurFit {
+    pub sigma_x: f32,
+    pub sigma_y: f32,
+    /// PSNR of the render against the photo blurred by (σx, σy).
+    pub psnr: f64,
+}
+
+/// The Gaussian widths (pixels) [`blur_fit`] tries along each axis.
+pub const BLUR_SIGMAS: [f32; 6] = [0.0, 0.4, 0.8, 1.2, 1.6, 2.0];
+
+/// The [`BlurFit`] of `render` against `photo`, both `width × height`
+/// row-major; `None` when the sizes disagree or the image is empty.
+pub fn blur_fit(render: &[Vec3], photo: &[Vec3], width: usize, height: usize) -> Option<BlurFit> {
+    let n = width.checked_mul(height)?;
+    if n == 0 || render.len() != n || photo.len() != n {
+        return None;
+    }
+    use rayon::prelude::*;
+    let along_x: Vec<Vec<Vec3>> = BLUR_SIGMAS
+        .par_iter()
+        .map(|&sx| blur_axis(photo, width, height, sx, true))
+        .collect();
+    let pairs: Vec<(usize, usize)> = (0..BLUR_SIGMAS.len())
+        .flat_map(|i| (0..BLUR_SIGMAS.len()).map(move |j| (i, j)))
+        .collect();
+    // In a fixed order, so that ties go to the least blur whatever the pool did.
+    let scores: Vec<f64> = pairs
+        .par_iter()
+        .map(|&(i, j)| psnr(render, &blur_axis(&along_x[i], width, height, BLUR_SIGMAS[j], false)))
+        .collect();
+    let (k, &p) = scores
+        .iter()
+        .enumerate()
+        .fold((0, &f64::NEG_INFINITY), |b, (k, p)| if *p > *b.1 { (k, p) } else { b });
+    let (i, j) = pairs[k];
+    Some(BlurFit {
+        sigma_x: BLUR_SIGMAS[i],
+        sigma_y: BLUR_SIGMAS[j],
+        psnr: p,
+    })
+}
+
+/// `img` convolved with a normalised Gaussian of σ pixels along x (rows)
+/// or y (columns), edges clamped; a copy for σ = 0.
+fn blur_axis(img: &[Vec3], width: usize, height: usize, sigma: f32, along_x: bool) -> Vec<Vec3> {
+    if sigma <= 0.0 {
+        return img.to_vec();
+    }
+    let r = (3.0 * sigma).ceil() as isize;
+    let norm: f32 = (-r..=r).map(|i| gauss(i, sigma)).sum();
+    let kernel: Vec<f32> = (-r..=r).map(|i| gauss(i, sigma) / norm).collect();
+    let clamp = |i: isize, len: usize| i.clamp(0, len as isize - 1) as usize;
+    let mut out = vec![Vec3::ZERO; img.len()];
+    for (y, row) in out.chunks_exact_mut(width).enumerate() {
+        for (k, &w) in kernel.iter().enumerate() {
+            let d = k as isize - r;
+            if along_x {
+                let src = &img[y * width..(y + 1) * width];
+                for (x, o) in row.iter_mut().enumerate() {
+                    *o += w * src[clamp(x as isize + d, width)];
+                }
+            } else {
+                // Whole rows at a time: contiguous in memory.
+                let sy = clamp(y as isize + d, height);
+                for (o, s) in row.iter_mut().zip(&img[sy * width..(sy + 1) * width]) {
+                    *o += w * *s;
+                }
+            }
+        }
+    }
+    out
+}
+
+fn gauss(i: isize, sigma: f32) -> f32 {
+    (-((i * i) as f32) / (2.0 * sigma * sigma)).exp()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -126,5 +212,51 @@ mod tests {
         let a = Bitmap::from_fn([4, 4, 4], |i| i < 32);
         let b = Bitmap::from_fn([4, 4, 4], |i| i >= 16);
         assert!((iou3d(&a, &b).unwrap() - 16.0 / 64.0).abs() < 1e-12);
+    }
+
+    /// A test card: a hard-edged checkerboard (edges along both axes).
+    fn card(w: usize, h: usize) -> Vec<Vec3> {
+        (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if (x / 5 + y / 5) % 2 == 0 {
+                    Vec3::new(0.9, 0.8, 0.7)
+                } else {
+                    Vec3::new(0.1, 0.2, 0.3)
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn blur_fit_finds_the_axis_and_width_a_render_is_blurred_by() {
+        let (w, h) = (40, 30);
+        let photo = card(w, h);
+        // The photo itself: no blur, exact.
+        let f = blur_fit(&photo, &photo, w, h).unwrap();
+        assert_eq!((f.sigma_x, f.sigma_y, f.psnr), (0.0, 0.0, f64::INFINITY));
+        // Blurred along x only (a smear across horizontal parallax).
+        let smeared = blur_axis(&photo, w, h, 1.2, true);
+        let f = blur_fit(&smeared, &photo, w, h).unwrap();
+        assert_eq!((f.sigma_x, f.sigma_y), (1.2, 0.0));
+        assert!(psnr(&smeared, &photo) < 25.0 && f.psnr == f64::INFINITY, "{f:?}");
+        // Along y, then both, at other widths.
+        let f = blur_fit(&blur_axis(&photo, w, h, 0.8, false), &photo, w, h).unwrap();
+        assert_eq!((f.sigma_x, f.sigma_y), (0.0, 0.8));
+        let both = blur_axis(&blur_axis(&photo, w, h, 1.6, true), w, h, 0.4, false);
+        let f = blur_fit(&both, &photo, w, h).unwrap();
+        assert_eq!((f.sigma_x, f.sigma_y), (1.6, 0.4));
+        // Blur keeps the mean: a flat image blurs to itself.
+        let flat = vec![Vec3::splat(0.5); w * h];
+        for along_x in [true, false] {
+            let b = blur_axis(&flat, w, h, 2.0, along_x);
+            assert!(b.iter().all(|c| (*c - Vec3::splat(0.5)).abs().max_element() < 1e-6));
+        }
+        // An error blur cannot explain stays: a shifted card.
+        let shifted: Vec<Vec3> = (0..w * h).map(|i| photo[(i / w) * w + (i % w + 2) % w]).collect();
+        assert!(blur_fit(&shifted, &photo, w, h).unwrap().psnr < 15.0);
+        // Sizes that disagree or an empty image: no fit.
+        assert!(blur_fit(&photo[1..], &photo, w, h).is_none());
+        assert!(blur_fit(&[], &[], 0, 5).is_none());
     }
 }
