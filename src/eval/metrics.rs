@@ -142,15 +142,12 @@ pub fn blur_fit(render: &[Vec3], photo: &[Vec3], width: usize, height: usize) ->
         .par_iter()
         .map(|&(i, j)| psnr(render, &blur_axis(&along_x[i], width, height, BLUR_SIGMAS[j], false)))
         .collect();
-    let (k, &p) = scores
-        .iter()
-        .enumerate()
-        .fold((0, &f64::NEG_INFINITY), |b, (k, p)| if *p > *b.1 { (k, p) } else { b });
+    let k = (1..scores.len()).fold(0, |best, k| if scores[k] > scores[best] { k } else { best });
     let (i, j) = pairs[k];
     Some(BlurFit {
         sigma_x: BLUR_SIGMAS[i],
         sigma_y: BLUR_SIGMAS[j],
-        psnr: p,
+        psnr: scores[k],
     })
 }
 
