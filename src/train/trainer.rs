@@ -70,6 +70,10 @@ pub struct TrainConfig {
     /// Fraction of the touched voxels whose density and colour TV is taken
     /// at each iteration (weight divided by it: the same TV in expectation).
     pub tv_keep: f32,
+    /// Factor on the density and colour TV weights during the last (full
+    /// resolution) stage: 0 lets the coarse stages settle the geometry
+    /// smoothly and the full grid then fit thin parts freely.
+    pub tv_last_stage: f32,
     /// Weight λ of the distortion loss (mip-NeRF 360) added to the mean
     /// colour error: it pulls each ray's weight into one short stretch, so
     /// that fog and doubled surfaces, invisible in the training views,
@@ -142,6 +146,7 @@ impl Default for TrainConfig {
             tv_sh: 0.0,
             tv_features: 0.0,
             tv_keep: 1.0,
+            tv_last_stage: 1.0,
             distortion: 0.0,
             background: [1.0; 3],
             bounds: None,
@@ -227,6 +232,7 @@ impl TrainConfig {
             self.tv_density,
             self.tv_sh,
             self.tv_features,
+            self.tv_last_stage,
             self.distortion,
             self.feature_lambda,
             self.lr_vm_grid,
@@ -255,6 +261,16 @@ impl TrainConfig {
             "background must be finite"
         );
         Ok(())
+    }
+    /// The factor on the density and colour TV at iteration `iter`:
+    /// `tv_last_stage` from the last stage's first iteration on, else 1.
+    pub fn tv_scale(&self, iter: usize) -> f32 {
+        let last_stage = self.schedule().last().map_or(0, |s| s.0);
+        if iter >= last_stage {
+            self.tv_last_stage
+        } else {
+            1.0
+        }
     }
     pub fn total_iters(&self) -> usize {
         self.iters + self.feature_iters
@@ -693,6 +709,7 @@ impl Trainer {
         let touched = merge_marks(&mut [&mut self.grads.marks]);
         let sh_touched = merge_marks(&mut [&mut self.grads.sh_marks]);
         let res = self.model.geom.res;
+        let tv_scale = cfg.tv_scale(self.iter);
         let tv_sample = Tv {
             weight: 0.0,
             keep: cfg.tv_keep,
@@ -709,7 +726,7 @@ impl Trainer {
                 &touched,
                 Layout::SlotGrads(&self.model.slots),
                 Tv {
-                    weight: cfg.tv_density * voxel * voxel,
+                    weight: cfg.tv_density * voxel * voxel * tv_scale,
                     ..tv_sample
                 },
             );
@@ -721,7 +738,7 @@ impl Trainer {
                 &sh_touched,
                 Layout::Slots(&self.model.slots),
                 Tv {
-                    weight: cfg.tv_sh,
+                    weight: cfg.tv_sh * tv_scale,
                     ..tv_sample
                 },
             );
@@ -844,6 +861,33 @@ pub fn psnr_of(mse: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tv_is_scaled_from_the_last_stage_on() {
+        let c = TrainConfig {
+            iters: 1000,
+            stages: 4,
+            last_stage_at: 0.5,
+            tv_last_stage: 0.0,
+            ..Default::default()
+        };
+        // Stages start at 0, 167, 333 and 500.
+        assert_eq!(c.schedule().last().unwrap().0, 500);
+        assert_eq!((c.tv_scale(0), c.tv_scale(499)), (1.0, 1.0));
+        assert_eq!((c.tv_scale(500), c.tv_scale(999)), (0.0, 0.0));
+        // The default keeps one weight throughout; one stage is all last.
+        assert_eq!(TrainConfig::default().tv_scale(10_000), 1.0);
+        let one = TrainConfig { stages: 1, ..c.clone() };
+        assert_eq!(one.tv_scale(0), 0.0);
+        // Negative or NaN factors are refused.
+        for bad in [-1.0, f32::NAN] {
+            let c = TrainConfig {
+                tv_last_stage: bad,
+                ..Default::default()
+            };
+            assert!(c.validate().is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn ray_step_is_half_a_voxel_in_grid_units() {
