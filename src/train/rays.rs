@@ -123,11 +123,8 @@ impl RaySet {
 /// span the NDC frustum of the training views; otherwise the frustums
 /// between the views' near/far bounds, or the box around the cameras.
 pub fn default_bounds(ds: &Dataset) -> Aabb {
-    let train: Vec<&Camera> = ds
-        .indices(Split::Train)
-        .into_iter()
-        .map(|i| &ds.cameras.frames[i].camera)
-        .collect();
+    let idx = ds.indices(Split::Train);
+    let train: Vec<&Camera> = idx.iter().map(|&i| &ds.cameras.frames[i].camera).collect();
     if ds.kind == DatasetKind::Blender {
         return Aabb::new(Vec3::splat(-1.5), Vec3::splat(1.5));
     }
@@ -135,11 +132,10 @@ pub fn default_bounds(ds: &Dataset) -> Aabb {
         let depths = ds
             .near_far
             .as_ref()
-            .and_then(|nf| depth_range(ds.indices(Split::Train).iter().map(|&i| nf.get(i).copied())));
+            .and_then(|nf| depth_range(idx.iter().map(|&i| nf.get(i).copied())));
         return ndc_bounds(&train, depths);
     }
     if let Some(nf) = &ds.near_far {
-        let idx = ds.indices(Split::Train);
         let mut lo = Vec3::splat(f32::INFINITY);
         let mut hi = Vec3::splat(f32::NEG_INFINITY);
         for (&i, cam) in idx.iter().zip(&train) {
