@@ -86,6 +86,10 @@ pub struct QualityConfig {
     /// Also score each stroke's seeds and stable region, and name what
     /// every stage selects wrongly ([`StageRow`]).
     pub diagnose: bool,
+    /// Training settings to start from instead of the Blender preset
+    /// (`isrf bench quality --config`, for comparing field settings); the
+    /// iteration and distillation overrides still apply over them.
+    pub base_train: Option<TrainConfig>,
 }
 
 impl Default for QualityConfig {
@@ -106,6 +110,7 @@ impl Default for QualityConfig {
             feature_guide: None,
             feature_res: None,
             diagnose: false,
+            base_train: None,
         }
     }
 }
@@ -137,9 +142,9 @@ impl QualityConfig {
     }
 
     /// The training settings: the Blender preset (`isrf train` on a
-    /// Blender folder), with the iteration overrides.
+    /// Blender folder) or [`Self::base_train`], with the iteration overrides.
     pub fn train_config(&self) -> TrainConfig {
-        let mut c = preset(crate::data::DatasetKind::Blender);
+        let mut c = (self.base_train.clone()).unwrap_or_else(|| preset(crate::data::DatasetKind::Blender));
         if let Some(n) = self.iters {
             c.iters = n;
         }
@@ -289,7 +294,7 @@ pub fn load_field(dir: &Path, key: &str) -> Result<Option<(Field, TrainedMeta)>>
 /// the teacher and a checksum of its distilled-from maps (so a changed
 /// teacher retrains).
 pub fn field_key(capture_key: &str, config: &TrainConfig, teacher: &str, maps_crc: u32) -> String {
-    let config = serde_json::to_string(config).unwrap_or_default();
+    let config = settings_key(config);
     format!("{capture_key} | train {config} | teacher {teacher} maps {maps_crc:08x}")
 }
 
@@ -304,8 +309,20 @@ fn radiance_key(capture_key: &str, config: &TrainConfig) -> String {
     c.lr_features = 0.0;
     c.tv_features = 0.0;
     c.freeze_geometry = false;
-    let config = serde_json::to_string(&c).unwrap_or_default();
+    let config = settings_key(&c);
     format!("{capture_key} | radiance {config}")
+}
+
+/// The training settings as they enter a cache key. Settings added since
+/// the cache's fields were trained are left out while at their default (a
+/// default that leaves training unchanged), so those fields stay valid.
+fn settings_key(c: &TrainConfig) -> String {
+    let json = serde_json::to_string(c).unwrap_or_default();
+    if c.distortion_coarse == 1.0 {
+        json.replace(",\"distortion_coarse\":1.0", "")
+    } else {
+        json
+    }
 }
 
 /// Cache key of a capture.
@@ -1186,6 +1203,20 @@ mod tests {
     fn shifted(b: &Bitmap) -> Bitmap {
         let nx = b.res()[0];
         Bitmap::from_fn(b.res(), |i| i % nx > 0 && b.get(i - 1))
+    }
+
+    #[test]
+    fn settings_added_at_their_default_leave_cache_keys_alone() {
+        let c = TrainConfig::default();
+        let key = settings_key(&c);
+        assert!(!key.contains("distortion_coarse"), "{key}");
+        // Exactly the serialization without the new setting: the order of
+        // the other settings (struct order) is kept.
+        let full = serde_json::to_string(&c).unwrap();
+        assert_eq!(full.len() - key.len(), ",\"distortion_coarse\":1.0".len());
+        let other = TrainConfig { distortion_coarse: 0.0, ..c };
+        assert!(settings_key(&other).contains("\"distortion_coarse\":0.0"));
+        assert_ne!(radiance_key("k", &other), radiance_key("k", &TrainConfig::default()));
     }
 
     #[test]

@@ -77,6 +77,11 @@ pub struct QualityArgs {
     /// cut, and name the objects every stage selects wrongly.
     #[arg(long)]
     pub diagnose: bool,
+    /// JSON file with training settings put over the Blender preset (as
+    /// `isrf train --config`), to score fields trained otherwise; such
+    /// fields are cached under their own keys.
+    #[arg(long)]
+    pub config: Option<std::path::PathBuf>,
     /// Segmentation parameters (defaults unless given: for ablations).
     #[command(flatten)]
     pub params: super::segment::ParamArgs,
@@ -317,6 +322,10 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         feature_guide: a.feature_guide,
         feature_res: a.feature_res,
         diagnose: a.diagnose,
+        base_train: match &a.config {
+            Some(p) => Some(super::train::overlay_config(isrf::train::preset(isrf::data::DatasetKind::Blender), p)?),
+            None => None,
+        },
         ..Default::default()
     };
     if !a.scenes.is_empty() {

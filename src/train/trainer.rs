@@ -79,6 +79,10 @@ pub struct TrainConfig {
     /// that fog and doubled surfaces, invisible in the training views,
     /// do not ghost in new ones. 0: off.
     pub distortion: f32,
+    /// Factor on `distortion` before the last stage: 0 leaves the coarse
+    /// stages free to spread weight (their cells are too large for thin
+    /// surfaces) and compacts the surfaces of the full grid only.
+    pub distortion_coarse: f32,
     pub background: [f32; 3],
     /// Initial box; `None`: [`super::rays::default_bounds`] of the dataset.
     pub bounds: Option<[[f32; 3]; 2]>,
@@ -148,6 +152,7 @@ impl Default for TrainConfig {
             tv_keep: 1.0,
             tv_last_stage: 1.0,
             distortion: 0.0,
+            distortion_coarse: 1.0,
             background: [1.0; 3],
             bounds: None,
             seed: 0,
@@ -234,6 +239,7 @@ impl TrainConfig {
             self.tv_features,
             self.tv_last_stage,
             self.distortion,
+            self.distortion_coarse,
             self.feature_lambda,
             self.lr_vm_grid,
             self.lr_vm_net,
@@ -265,11 +271,19 @@ impl TrainConfig {
     /// The factor on the density and colour TV at iteration `iter`:
     /// `tv_last_stage` from the last stage's first iteration on, else 1.
     pub fn tv_scale(&self, iter: usize) -> f32 {
+        self.by_stage(iter, 1.0, self.tv_last_stage)
+    }
+    /// The distortion weight at iteration `iter`.
+    pub fn distortion_at(&self, iter: usize) -> f32 {
+        self.distortion * self.by_stage(iter, self.distortion_coarse, 1.0)
+    }
+    /// `coarse` before the last stage's first iteration, `last` from it on.
+    fn by_stage(&self, iter: usize, coarse: f32, last: f32) -> f32 {
         let last_stage = self.schedule().last().map_or(0, |s| s.0);
         if iter >= last_stage {
-            self.tv_last_stage
+            last
         } else {
-            1.0
+            coarse
         }
     }
     pub fn total_iters(&self) -> usize {
@@ -462,7 +476,7 @@ impl Trainer {
             distortion: if self.radiance_frozen() {
                 0.0
             } else {
-                self.config.distortion / self.config.batch as f32
+                self.config.distortion_at(self.iter) / self.config.batch as f32
             },
         }
     }
@@ -879,10 +893,23 @@ mod tests {
         assert_eq!(TrainConfig::default().tv_scale(10_000), 1.0);
         let one = TrainConfig { stages: 1, ..c.clone() };
         assert_eq!(one.tv_scale(0), 0.0);
+        // The distortion's factor acts the other way round: before the last stage.
+        let d = TrainConfig {
+            distortion: 0.01,
+            distortion_coarse: 0.0,
+            ..c.clone()
+        };
+        assert_eq!((d.distortion_at(499), d.distortion_at(500)), (0.0, 0.01));
+        assert_eq!(TrainConfig { distortion: 0.01, ..Default::default() }.distortion_at(0), 0.01);
         // Negative or NaN factors are refused.
         for bad in [-1.0, f32::NAN] {
             let c = TrainConfig {
                 tv_last_stage: bad,
+                ..Default::default()
+            };
+            assert!(c.validate().is_err(), "{bad}");
+            let c = TrainConfig {
+                distortion_coarse: bad,
                 ..Default::default()
             };
             assert!(c.validate().is_err(), "{bad}");
