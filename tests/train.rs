@@ -82,6 +82,7 @@ fn exact_opts(step: f32, features: bool) -> MarchOpts {
         weight_floor: 0.0,
         min_transmittance: 0.0,
         features,
+        colour: true,
         geometry: true,
         distortion: 0.0,
     }
@@ -409,6 +410,24 @@ fn frozen_geometry_gets_no_gradient_and_the_same_feature_gradient() {
     assert!(frozen.feat_marks == free.feat_marks, "touched feature points differ");
     assert!(frozen.density.iter().chain(&frozen.sh).all(|&g| g == 0.0));
     assert!(frozen.marks.iter().chain(&frozen.sh_marks).all(|&w| w == 0));
+    // The trainer distils without shading colour: the same features and
+    // feature gradients, the ray's colour only the background left over.
+    let dark = MarchOpts {
+        geometry: false,
+        colour: false,
+        ..opts
+    };
+    let unshaded = probe.grads(&m, &dark);
+    assert!(unshaded.feat == free.feat, "feature gradients differ without colour");
+    assert!(unshaded.feat_marks == free.feat_marks);
+    let (mut a, mut b) = (Scratch::default(), Scratch::default());
+    for r in &probe.rays {
+        let (lit, unlit) = (forward(&m, r, &opts, &mut a), forward(&m, r, &dark, &mut b));
+        assert_eq!(lit.opacity, unlit.opacity);
+        assert_eq!(a.features, b.features);
+        let left = opts.background * (1.0 - unlit.opacity);
+        assert!((unlit.color - left).length() < 1e-5, "{:?} vs {left:?}", unlit.color);
+    }
 }
 
 #[test]

@@ -31,6 +31,11 @@ pub struct MarchOpts {
     pub min_transmittance: f32,
     /// Render (and train) semantic features.
     pub features: bool,
+    /// Shade colour. Off while distilling features into a frozen field:
+    /// nothing uses the colour then, and gathering a sample's SH
+    /// coefficients was the forward pass's largest cost (memory stalls).
+    /// The ray's colour is then the background alone.
+    pub colour: bool,
     /// Density and colour train: the backward pass records their
     /// gradients (off while distilling features into a frozen field).
     pub geometry: bool,
@@ -336,6 +341,7 @@ fn forward_k<const K: usize>(model: &Model, ray: &Ray, opts: &MarchOpts, s: &mut
             };
             if w > opts.weight_floor {
                 smp.color = match &model.vm {
+                    _ if !opts.colour => [0.0; 3],
                     Some(vm) => {
                         let start = s.vm_rows.len();
                         s.vm_rows.resize(start + vm.shape.row_len(), 0.0);

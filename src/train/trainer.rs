@@ -471,6 +471,7 @@ impl Trainer {
             weight_floor: if first_stage { 0.0 } else { self.config.weight_floor },
             min_transmittance: self.config.min_transmittance,
             features,
+            colour: true,
             geometry: !self.radiance_frozen(),
             // Per ray: the loss is a mean over the batch.
             distortion: if self.radiance_frozen() {
@@ -605,6 +606,7 @@ impl Trainer {
                     let ray = rays.ray(ri);
                     let opts = MarchOpts {
                         step: ray_step(&model.geom, ray.dir),
+                        colour: opts.geometry,
                         ..opts
                     };
                     let out = forward(model, &ray, &opts, &mut s);
@@ -634,7 +636,12 @@ impl Trainer {
         self.iter += 1;
         let se: f64 = results.iter().map(|r| r.0).sum();
         let fe: f64 = results.iter().map(|r| r.1).sum();
-        let loss = (se / (3.0 * nb as f64)) as f32;
+        // A frozen field's colour is not shaded while distilling (see
+        // `MarchOpts::colour`): its colour loss is the last radiance step's.
+        let loss = match (opts.geometry, self.history.last()) {
+            (false, Some(last)) => last.loss,
+            _ => (se / (3.0 * nb as f64)) as f32,
+        };
         let fc = self.model.features.as_ref().map_or(1, |f| f.channels) as f64;
         let stats = StepStats {
             iter: self.iter,
