@@ -585,6 +585,11 @@ impl Trainer {
         self.apply_schedule()?;
         let features = self.in_feature_phase() && self.model.features.is_some();
         let opts = self.march_opts(features);
+        // Distilling into a frozen field, colour is not shaded (see
+        // `MarchOpts::colour`) and the loss shown is the last radiance
+        // step's; only a field with no radiance step behind it shades it.
+        let carried = if opts.geometry { None } else { self.history.last().map(|s| s.loss) };
+        let shade = carried.is_none();
         let batch = self.sample_batch();
         let nb = batch.len().max(1) as f32;
         let nt = self.logs.len();
@@ -606,7 +611,7 @@ impl Trainer {
                     let ray = rays.ray(ri);
                     let opts = MarchOpts {
                         step: ray_step(&model.geom, ray.dir),
-                        colour: opts.geometry,
+                        colour: shade,
                         ..opts
                     };
                     let out = forward(model, &ray, &opts, &mut s);
@@ -636,12 +641,7 @@ impl Trainer {
         self.iter += 1;
         let se: f64 = results.iter().map(|r| r.0).sum();
         let fe: f64 = results.iter().map(|r| r.1).sum();
-        // A frozen field's colour is not shaded while distilling (see
-        // `MarchOpts::colour`): its colour loss is the last radiance step's.
-        let loss = match (opts.geometry, self.history.last()) {
-            (false, Some(last)) => last.loss,
-            _ => (se / (3.0 * nb as f64)) as f32,
-        };
+        let loss = carried.unwrap_or((se / (3.0 * nb as f64)) as f32);
         let fc = self.model.features.as_ref().map_or(1, |f| f.channels) as f64;
         let stats = StepStats {
             iter: self.iter,
