@@ -1214,7 +1214,10 @@ mod tests {
         // the other settings (struct order) is kept.
         let full = serde_json::to_string(&c).unwrap();
         assert_eq!(full.len() - key.len(), ",\"distortion_coarse\":1.0".len());
-        let other = TrainConfig { distortion_coarse: 0.0, ..c };
+        let other = TrainConfig {
+            distortion_coarse: 0.0,
+            ..c
+        };
         assert!(settings_key(&other).contains("\"distortion_coarse\":0.0"));
         assert_ne!(radiance_key("k", &other), radiance_key("k", &TrainConfig::default()));
     }

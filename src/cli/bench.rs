@@ -323,7 +323,10 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         feature_res: a.feature_res,
         diagnose: a.diagnose,
         base_train: match &a.config {
-            Some(p) => Some(super::train::overlay_config(isrf::train::preset(isrf::data::DatasetKind::Blender), p)?),
+            Some(p) => Some(super::train::overlay_config(
+                isrf::train::preset(isrf::data::DatasetKind::Blender),
+                p,
+            )?),
             None => None,
         },
         ..Default::default()

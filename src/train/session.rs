@@ -445,8 +445,14 @@ mod tests {
 
     #[test]
     fn strided_pixels_cover_every_stride_th_row_and_column() {
-        assert_eq!(strided_pixels(3, 2, 1), vec![(0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (2, 1)]);
-        assert_eq!(strided_pixels(5, 3, 2), vec![(0, 0), (2, 0), (4, 0), (0, 2), (2, 2), (4, 2)]);
+        assert_eq!(
+            strided_pixels(3, 2, 1),
+            vec![(0, 0), (1, 0), (2, 0), (0, 1), (1, 1), (2, 1)]
+        );
+        assert_eq!(
+            strided_pixels(5, 3, 2),
+            vec![(0, 0), (2, 0), (4, 0), (0, 2), (2, 2), (4, 2)]
+        );
         assert_eq!(strided_pixels(4, 4, 2).len(), 4);
     }
 

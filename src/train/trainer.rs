@@ -588,7 +588,11 @@ impl Trainer {
         // Distilling into a frozen field, colour is not shaded (see
         // `MarchOpts::colour`) and the loss shown is the last radiance
         // step's; only a field with no radiance step behind it shades it.
-        let carried = if opts.geometry { None } else { self.history.last().map(|s| s.loss) };
+        let carried = if opts.geometry {
+            None
+        } else {
+            self.history.last().map(|s| s.loss)
+        };
         let shade = carried.is_none();
         let batch = self.sample_batch();
         let nb = batch.len().max(1) as f32;
@@ -907,7 +911,14 @@ mod tests {
             ..c.clone()
         };
         assert_eq!((d.distortion_at(499), d.distortion_at(500)), (0.0, 0.01));
-        assert_eq!(TrainConfig { distortion: 0.01, ..Default::default() }.distortion_at(0), 0.01);
+        assert_eq!(
+            TrainConfig {
+                distortion: 0.01,
+                ..Default::default()
+            }
+            .distortion_at(0),
+            0.01
+        );
         // Negative or NaN factors are refused.
         for bad in [-1.0, f32::NAN] {
             let c = TrainConfig {
