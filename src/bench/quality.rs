@@ -144,7 +144,10 @@ impl QualityConfig {
     /// The training settings: the Blender preset (`isrf train` on a
     /// Blender folder) or [`Self::base_train`], with the iteration overrides.
     pub fn train_config(&self) -> TrainConfig {
-        let mut c = (self.base_train.clone()).unwrap_or_else(|| preset(crate::data::DatasetKind::Blender));
+        let mut c = self
+            .base_train
+            .clone()
+            .unwrap_or_else(|| preset(crate::data::DatasetKind::Blender));
         if let Some(n) = self.iters {
             c.iters = n;
         }

@@ -322,13 +322,11 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         feature_guide: a.feature_guide,
         feature_res: a.feature_res,
         diagnose: a.diagnose,
-        base_train: match &a.config {
-            Some(p) => Some(super::train::overlay_config(
-                isrf::train::preset(isrf::data::DatasetKind::Blender),
-                p,
-            )?),
-            None => None,
-        },
+        base_train: a
+            .config
+            .as_deref()
+            .map(|p| super::train::overlay_config(isrf::train::preset(isrf::data::DatasetKind::Blender), p))
+            .transpose()?,
         ..Default::default()
     };
     if !a.scenes.is_empty() {

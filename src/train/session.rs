@@ -428,7 +428,6 @@ impl Session {
     }
 }
 
-/// Rays through every pixel centre of a camera, row-major.
 /// Pixels (x, y) of a `width`×`height` image on every `stride`-th column
 /// and row, row-major.
 fn strided_pixels(width: u32, height: u32, stride: u32) -> Vec<(u32, u32)> {

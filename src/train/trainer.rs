@@ -593,7 +593,10 @@ impl Trainer {
         } else {
             self.history.last().map(|s| s.loss)
         };
-        let shade = carried.is_none();
+        let opts = MarchOpts {
+            colour: carried.is_none(),
+            ..opts
+        };
         let batch = self.sample_batch();
         let nb = batch.len().max(1) as f32;
         let nt = self.logs.len();
@@ -615,7 +618,6 @@ impl Trainer {
                     let ray = rays.ray(ri);
                     let opts = MarchOpts {
                         step: ray_step(&model.geom, ray.dir),
-                        colour: shade,
                         ..opts
                     };
                     let out = forward(model, &ray, &opts, &mut s);
