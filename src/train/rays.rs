@@ -9,21 +9,22 @@ use crate::Result;
 use glam::Vec3;
 use rayon::prelude::*;
 
-/// Every pixel of some views: its target colour, view and pixel, 12 bytes
-/// each; its ray is computed from the view's camera when a batch needs it
-/// (a few flops beside a march of hundreds of samples), so a full-resolution
-/// capture (lego at 800×800: 64 M pixels) does not hold 44 bytes of ray
-/// and f32 colour per pixel.
+/// Every pixel of some views: its target colour, 6 bytes each; its view and
+/// pixel follow from its index (views are stored one after another, rows
+/// top to bottom), and its ray is computed from the view's camera when a
+/// batch needs it (a few flops beside a march of hundreds of samples). So a
+/// full-resolution capture (lego at 800×800: 64 M pixels) holds 384 MB of
+/// colour, not 44 bytes of ray and f32 colour per pixel.
 #[derive(Clone, Debug, Default)]
 pub struct RaySet {
     cameras: Vec<Camera>,
     /// RGB in units of 1/65535: exact for 8- and 16-bit images.
     colors: Vec<[u16; 3]>,
-    view: Vec<u16>,
-    pixel: Vec<[u16; 2]>,
+    /// Index of each view's first pixel, ascending.
+    starts: Vec<u32>,
 }
 
-/// The most views a ray set holds (view indices are 16-bit).
+/// The most views a ray set holds.
 const MAX_VIEWS: usize = u16::MAX as usize + 1;
 
 fn to_u16(v: f32) -> u16 {
@@ -57,18 +58,23 @@ impl RaySet {
             );
         }
         let n: usize = views.iter().map(|(_, img)| img.len()).sum();
+        // Ray indices are 32-bit (batches, the runs of `hitting`).
+        crate::ensure_within!(
+            OutOfRange,
+            n <= u32::MAX as usize,
+            "{n} training pixels: at most {} in one set",
+            u32::MAX
+        );
         let mut out = RaySet {
             cameras: views.iter().map(|(c, _)| *c).collect(),
             colors: Vec::with_capacity(n),
-            view: Vec::with_capacity(n),
-            pixel: Vec::with_capacity(n),
+            starts: Vec::with_capacity(views.len()),
         };
-        for (v, (_, img)) in views.iter().enumerate() {
+        for (_, img) in views {
+            out.starts.push(out.colors.len() as u32);
             for y in 0..img.height {
                 for x in 0..img.width {
                     out.colors.push(img.pixel(x, y).map(to_u16));
-                    out.view.push(v as u16);
-                    out.pixel.push([x as u16, y as u16]);
                 }
             }
         }
@@ -80,11 +86,19 @@ impl RaySet {
     pub fn is_empty(&self) -> bool {
         self.colors.is_empty()
     }
+    /// View and pixel coordinates of pixel `i`.
+    #[inline]
+    fn locate(&self, i: usize) -> (usize, u32, u32) {
+        let v = self.starts.partition_point(|&s| s as usize <= i) - 1;
+        let r = i - self.starts[v] as usize;
+        let w = self.cameras[v].intrinsics.width as usize;
+        (v, (r % w) as u32, (r / w) as u32)
+    }
     /// The ray of pixel `i`, as its camera makes it (`Camera::pixel_ray`).
     #[inline]
     pub fn ray(&self, i: usize) -> Ray {
-        let [x, y] = self.pixel[i];
-        self.cameras[self.view[i] as usize].pixel_ray(u32::from(x), u32::from(y))
+        let (v, x, y) = self.locate(i);
+        self.cameras[v].pixel_ray(x, y)
     }
     /// The target colour of pixel `i`, in [0, 1].
     #[inline]
@@ -94,27 +108,101 @@ impl RaySet {
     /// The view (index into the list the set was built from) of pixel `i`.
     #[inline]
     pub fn view(&self, i: usize) -> usize {
-        self.view[i] as usize
+        self.locate(i).0
     }
     /// Pixel coordinates of pixel `i` in its view.
     #[inline]
     pub fn pixel(&self, i: usize) -> [u16; 2] {
-        self.pixel[i]
+        let (_, x, y) = self.locate(i);
+        [x as u16, y as u16]
     }
     /// Bytes the set holds.
     pub fn memory_bytes(&self) -> usize {
-        self.len() * (size_of::<[u16; 3]>() + size_of::<u16>() + size_of::<[u16; 2]>())
+        self.len() * size_of::<[u16; 3]>()
+            + self.starts.len() * size_of::<u32>()
             + self.cameras.len() * size_of::<Camera>()
     }
-    /// Indices of the rays that meet `bounds`.
-    pub fn hitting(&self, bounds: &Aabb) -> Vec<u32> {
-        (0..self.len() as u32)
+    /// The rays that meet `bounds`. A box projects to a convex region of an
+    /// image, so they come in runs along rows: stored as runs, the subset
+    /// takes a few bytes per image row instead of 4 per ray.
+    pub fn hitting(&self, bounds: &Aabb) -> RaySubset {
+        let per_view: Vec<Vec<[u32; 2]>> = (0..self.cameras.len())
             .into_par_iter()
-            .filter(|&i| {
-                let r = self.ray(i as usize);
-                bounds.intersect(r.origin, r.dir).is_some()
+            .map(|v| {
+                let first = self.starts[v];
+                let end = self.starts.get(v + 1).copied().unwrap_or(self.len() as u32);
+                let mut runs = RunBuilder::default();
+                for i in first..end {
+                    let r = self.ray(i as usize);
+                    if bounds.intersect(r.origin, r.dir).is_some() {
+                        runs.push(i);
+                    }
+                }
+                runs.runs
             })
-            .collect()
+            .collect();
+        RaySubset::from_runs(per_view.into_iter().flatten())
+    }
+}
+
+/// Appends ascending indices as `[start, length]` runs.
+#[derive(Default)]
+struct RunBuilder {
+    runs: Vec<[u32; 2]>,
+}
+
+impl RunBuilder {
+    fn push(&mut self, i: u32) {
+        match self.runs.last_mut() {
+            Some([s, n]) if *s + *n == i => *n += 1,
+            _ => self.runs.push([i, 1]),
+        }
+    }
+}
+
+/// An ascending subset of a ray set's indices, held as runs of
+/// consecutive indices: `get(k)` is its k-th index.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RaySubset {
+    /// First index of each run.
+    starts: Vec<u32>,
+    /// Subset position of each run's first index (ascending), and the
+    /// subset's length at the end.
+    offsets: Vec<u64>,
+}
+
+impl Default for RaySubset {
+    fn default() -> Self {
+        Self::from_runs([])
+    }
+}
+
+impl RaySubset {
+    /// The subset made of `[start, length]` runs, ascending and disjoint.
+    fn from_runs(runs: impl IntoIterator<Item = [u32; 2]>) -> Self {
+        let mut out = RaySubset {
+            starts: vec![],
+            offsets: vec![0],
+        };
+        for [s, n] in runs {
+            let total = *out.offsets.last().expect("starts with 0");
+            out.starts.push(s);
+            out.offsets.push(total + u64::from(n));
+        }
+        out
+    }
+    pub fn len(&self) -> usize {
+        *self.offsets.last().expect("starts with 0") as usize
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// The subset's `k`-th index (k < len).
+    #[inline]
+    pub fn get(&self, k: usize) -> u32 {
+        let k = k as u64;
+        let run = self.offsets.partition_point(|&o| o <= k) - 1;
+        self.starts[run] + (k - self.offsets[run]) as u32
     }
 }
 
@@ -241,7 +329,8 @@ mod tests {
 
     /// The compact set gives back each pixel's ray exactly as its camera
     /// makes it (pinhole and NDC views), 8-bit colours exactly, its view
-    /// and pixel, in 12 bytes per pixel.
+    /// and pixel (views one after another, rows top to bottom), in 6 bytes
+    /// per pixel.
     #[test]
     fn rays_are_the_cameras_and_colours_survive_16_bits() {
         let k = Intrinsics::from_fov_x(7, 5, 1.0);
@@ -256,9 +345,10 @@ mod tests {
         let (ia, ib) = (img(1), img(2));
         let set = RaySet::build(&[(a, &ia), (b, &ib)]).unwrap();
         assert_eq!(set.len(), 70);
-        assert_eq!(set.memory_bytes(), 70 * 12 + 2 * size_of::<Camera>());
+        assert_eq!(set.memory_bytes(), 70 * 6 + 2 * 4 + 2 * size_of::<Camera>());
         for i in 0..set.len() {
             let (v, [x, y]) = (set.view(i), set.pixel(i));
+            assert_eq!((v, x as usize, y as usize), (i / 35, i % 35 % 7, i % 35 / 7));
             let (cam, im) = if v == 0 { (&a, &ia) } else { (&b, &ib) };
             let want = cam.pixel_ray(u32::from(x), u32::from(y));
             let got = set.ray(i);
@@ -277,6 +367,57 @@ mod tests {
             alpha: None,
         };
         assert!(RaySet::build(&[(a, &small)]).is_err());
+    }
+
+    /// Views of different sizes: every pixel is found in its own view, and
+    /// the rays meeting a box, kept as runs, are exactly those a ray-by-ray
+    /// test finds, in the same order.
+    #[test]
+    fn mixed_sizes_and_the_rays_that_meet_a_box() {
+        let views: Vec<(Camera, Image)> = [(9u32, 4u32, 0.0f32), (5, 6, 0.4), (1, 1, -0.2), (8, 3, 1.2)]
+            .into_iter()
+            .map(|(w, h, turn)| {
+                let k = Intrinsics::from_fov_x(w, h, 1.2);
+                let pose = Affine3A::from_rotation_y(turn) * Affine3A::from_translation(Vec3::new(0.0, 0.0, 2.0));
+                let img = Image {
+                    width: w,
+                    height: h,
+                    rgb: vec![0.5; (3 * w * h) as usize],
+                    alpha: None,
+                };
+                (Camera::new(k, pose), img)
+            })
+            .collect();
+        let refs: Vec<(Camera, &Image)> = views.iter().map(|(c, i)| (*c, i)).collect();
+        let set = RaySet::build(&refs).unwrap();
+        let mut i = 0;
+        for (v, (cam, img)) in views.iter().enumerate() {
+            for y in 0..img.height {
+                for x in 0..img.width {
+                    assert_eq!((set.view(i), set.pixel(i)), (v, [x as u16, y as u16]));
+                    let (got, want) = (set.ray(i), cam.pixel_ray(x, y));
+                    assert_eq!((got.origin, got.dir), (want.origin, want.dir));
+                    i += 1;
+                }
+            }
+        }
+        assert_eq!(i, set.len());
+        let bounds = Aabb::new(Vec3::splat(-0.3), Vec3::new(0.2, 0.25, 0.3));
+        let want: Vec<u32> = (0..set.len() as u32)
+            .filter(|&i| {
+                let r = set.ray(i as usize);
+                bounds.intersect(r.origin, r.dir).is_some()
+            })
+            .collect();
+        assert!(
+            !want.is_empty() && want.len() < set.len(),
+            "some rays meet the box, not all"
+        );
+        let sub = set.hitting(&bounds);
+        assert_eq!(sub.len(), want.len());
+        let got: Vec<u32> = (0..sub.len()).map(|k| sub.get(k)).collect();
+        assert_eq!(got, want);
+        assert!(set.hitting(&Aabb::new(Vec3::splat(50.0), Vec3::splat(51.0))).is_empty());
     }
 
     /// Three forward-facing NDC views along a row (one turned a little).

@@ -352,7 +352,7 @@ pub struct Trainer {
     /// The step's gradients, and each rayon task's records of them.
     grads: GradBuf,
     logs: Vec<GradLog>,
-    useful: Vec<u32>,
+    useful: super::rays::RaySubset,
 }
 
 impl Trainer {
@@ -389,7 +389,7 @@ impl Trainer {
             notes: vec![],
             grads: GradBuf::default(),
             logs: vec![],
-            useful: vec![],
+            useful: Default::default(),
         };
         t.reset_buffers(false);
         t
@@ -674,7 +674,7 @@ impl Trainer {
         // step: consecutive raw seeds would give overlapping sequences.
         let mixed = SplitMix64::new(self.config.seed.wrapping_mul(0x1000_0000_01B3) ^ self.iter as u64).next_u64();
         let mut rng = SplitMix64::new(mixed);
-        let mut b: Vec<u32> = (0..self.config.batch).map(|_| self.useful[rng.below(n)]).collect();
+        let mut b: Vec<u32> = (0..self.config.batch).map(|_| self.useful.get(rng.below(n))).collect();
         b.sort_unstable();
         b
     }
