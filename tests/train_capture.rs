@@ -52,6 +52,32 @@ fn training_and_distillation_recover_a_rendered_demo_scene() {
         first.get_or_insert(s.psnr);
     }
     let last = t.history.last().unwrap().psnr;
+    // Distilling into the frozen field keeps no moments for density and
+    // colour; its checkpoint resumes with the feature moments as saved, and
+    // distils again from it.
+    assert!(t.opt.density.m.is_empty() && t.opt.sh.v.is_empty());
+    assert_eq!(t.opt.features.m.len(), t.model.features.as_ref().unwrap().data.len());
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("frozen.ckpt.safetensors");
+    isrf::train::checkpoint::save(&path, &t.config, &t.model, &t.opt, t.iter, &t.history, "demo").unwrap();
+    let r = isrf::train::checkpoint::load(&path).unwrap();
+    let mut again = isrf::train::trainer::Trainer::from_parts(
+        r.state.config.clone(),
+        r.model,
+        r.opt,
+        r.state.iter,
+        r.history,
+        t.rays.clone(),
+    );
+    assert_eq!(
+        again.opt.features.v, t.opt.features.v,
+        "feature moments survive the resume"
+    );
+    assert!(again.opt.density.m.is_empty());
+    again.teacher = t.teacher.clone();
+    again.restart_features(None).unwrap();
+    again.step().unwrap();
+    assert!(again.opt.density.m.is_empty() && !again.opt.features.m.is_empty());
     let fitted = Scene::single(Arc::new(t.model.to_field()));
     let demo = isrf::demo::build("tabletop", 32, 0).unwrap();
     let test_cams: Vec<Camera> = demo

@@ -250,7 +250,11 @@ pub fn load(path: &Path) -> Result<Restored> {
             t.st.tensor(&format!("m.{name}"))
                 .map(|v| v.shape().iter().product::<usize>())
                 .unwrap_or(0);
-        if len == full_len && full_len != model.slots.len() * stride {
+        if len == 0 {
+            // Written while distilling into the frozen field, which keeps
+            // no moments for it.
+            Ok(Moments::default())
+        } else if len == full_len && full_len != model.slots.len() * stride {
             let all = Slots::new(geom.res, &vec![u64::MAX; n.div_ceil(64)]);
             Ok(moments(name, full_len)?.remap(&all, &model.slots, stride))
         } else {

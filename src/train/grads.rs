@@ -191,8 +191,12 @@ pub struct GradBuf {
 }
 
 impl GradBuf {
-    pub fn new(model: &Model) -> Self {
-        let n = model.slots.len();
+    /// Buffers for the arrays of `model` that train: without `radiance`
+    /// (distilling into a frozen field) none for density and SH colour,
+    /// which on lego's 320 grid would be 730 MB of zeros (VM appearance's
+    /// small arrays are kept either way).
+    pub fn new(model: &Model, radiance: bool) -> Self {
+        let n = if radiance { model.slots.len() } else { 0 };
         let (nf, fc) = model.features.as_ref().map_or((0, 0), |f| (f.geom.len(), f.channels));
         GradBuf {
             density: vec![0.0; n],
@@ -210,7 +214,7 @@ impl GradBuf {
     /// A buffer with every log of `logs` gathered into it (tests, one-off
     /// uses; training reuses one buffer).
     pub fn from_logs(model: &Model, logs: &mut [GradLog]) -> Self {
-        let mut g = GradBuf::new(model);
+        let mut g = GradBuf::new(model, true);
         gather(model, logs, &mut g);
         g
     }

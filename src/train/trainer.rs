@@ -391,7 +391,8 @@ impl Trainer {
             logs: vec![],
             useful: Default::default(),
         };
-        t.reset_buffers(false);
+        // Keeps the checkpoint's moments where they fit the model.
+        t.reset_buffers(true);
         t
     }
 
@@ -401,10 +402,13 @@ impl Trainer {
         let nt = rayon::current_num_threads().max(1);
         // Free the old buffers before allocating new ones (peak memory).
         self.grads = GradBuf::default();
-        self.grads = GradBuf::new(&self.model);
+        // A frozen field needs neither gradients nor moments for density
+        // and SH colour (on lego's 320 grid, 730 MB each).
+        let radiance = !self.radiance_frozen();
+        self.grads = GradBuf::new(&self.model, radiance);
         self.logs = (0..nt).map(|_| GradLog::new(&self.model)).collect();
         let (vg, vn) = self.model.vm.as_ref().map_or((0, 0), |v| (v.grid.len(), v.net.len()));
-        let slots = self.model.slots.len();
+        let slots = if radiance { self.model.slots.len() } else { 0 };
         let fits = self.opt.density.m.len() == slots
             && self.opt.sh.m.len() == slots * self.model.sh_stride()
             && self.opt.features.m.len() == self.model.features.as_ref().map_or(0, |f| f.data.len())
