@@ -24,7 +24,7 @@ pub struct RaySet {
     starts: Vec<u32>,
 }
 
-/// The most views a ray set holds.
+/// The most views a ray set holds (a bound on absurd inputs).
 const MAX_VIEWS: usize = u16::MAX as usize + 1;
 
 fn to_u16(v: f32) -> u16 {
@@ -129,14 +129,17 @@ impl RaySet {
         let per_view: Vec<Vec<[u32; 2]>> = (0..self.cameras.len())
             .into_par_iter()
             .map(|v| {
-                let first = self.starts[v];
-                let end = self.starts.get(v + 1).copied().unwrap_or(self.len() as u32);
+                // The view's pixels in index order, rays straight from its camera.
+                let cam = &self.cameras[v];
+                let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
                 let mut runs = RunBuilder::default();
-                for i in first..end {
-                    let r = self.ray(i as usize);
+                let mut i = self.starts[v];
+                for (y, x) in (0..h).flat_map(|y| (0..w).map(move |x| (y, x))) {
+                    let r = cam.pixel_ray(x, y);
                     if bounds.intersect(r.origin, r.dir).is_some() {
                         runs.push(i);
                     }
+                    i += 1;
                 }
                 runs.runs
             })
