@@ -7,6 +7,7 @@ pub mod anchor;
 pub mod bitmap_file;
 pub mod cut;
 pub mod dense;
+pub mod enclosed;
 pub mod grow;
 pub mod kmeans;
 pub mod maxflow;
@@ -250,6 +251,9 @@ pub struct Timings {
     pub region_voxels: usize,
     /// Stable rule: the hysteresis threshold it chose (0 otherwise).
     pub threshold: f32,
+    /// Positive strokes: unseen voxels enclosed by the object that joined
+    /// it ([`enclosed`]).
+    pub enclosed_voxels: usize,
 }
 
 impl Timings {
@@ -491,6 +495,11 @@ impl MaskBuilder {
                 self.positive_anchors.sort_unstable();
                 self.positive_anchors.dedup();
                 self.mask.union_with(&s.region)?;
+                if p.grow.rule != GrowthRule::Paper {
+                    // What no view saw inside the object moves with it.
+                    let floor = p.sigma_floor(cache.geom.spacing().min_element());
+                    t.enclosed_voxels = enclosed::fill_enclosed_unseen(cache, &mut self.mask, floor);
+                }
             }
             Polarity::Negative if p.grow.rule == GrowthRule::Paper => self.mask.subtract(&s.region)?,
             Polarity::Negative => {

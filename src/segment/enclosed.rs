@@ -1,0 +1,146 @@
+//! Unseen pockets enclosed by an object.
+//!
+//! A trained field keeps density inside solids and behind surfaces that no
+//! training ray reaches; distillation gives those voxels no features (their
+//! feature cells never get a gradient), so no stroke matches them and they
+//! stay behind when the object is moved: lego at 800×800 on a 320 grid has
+//! 15 % of its solid voxels in feature cells that are exactly zero, and a
+//! moved lego left a grey ghost of its insides in its old place.
+//!
+//! A connected pocket of such unseen solid voxels joins the object when
+//! everything solid around it is either the object or unseen too: it is
+//! enclosed by the object. A pocket that also touches a seen voxel outside
+//! the object (the inside of a table under a pot) belongs to nobody it can
+//! be told from, and is left alone.
+
+use super::grow::{GrowParams, Offsets};
+use crate::field::{Bitmap, FeatureCache};
+
+/// A voxel is unseen when its feature is shorter than this share of the
+/// median feature length over solid voxels.
+pub const UNSEEN_SHARE: f32 = 0.05;
+
+/// Adds to `mask` every pocket of unseen solid voxels (σ above `floor`)
+/// that touches it and is enclosed by it; returns how many voxels joined.
+pub fn fill_enclosed_unseen(cache: &FeatureCache, mask: &mut Bitmap, floor: f32) -> usize {
+    let Some(unseen) = unseen_test(cache, floor) else {
+        return 0;
+    };
+    let offs = Offsets::new(cache.geom.res, &GrowParams::default());
+    let solid = |v: usize| cache.index.slot(v).is_some_and(|r| cache.sigma[r] > floor);
+    let mut visited = Bitmap::new(cache.geom.res);
+    let mut added = Vec::new();
+    let mut stack = Vec::new();
+    let starts: Vec<usize> = mask.ones().collect();
+    for m in starts {
+        offs.for_each(m, |_, s| {
+            if mask.get(s) || visited.get(s) || !unseen(s) {
+                return;
+            }
+            // Flood the pocket from s, noting whether it meets a seen solid
+            // voxel outside the object.
+            let (first, mut open) = (added.len(), false);
+            visited.set(s, true);
+            stack.push(s);
+            while let Some(v) = stack.pop() {
+                added.push(v as u32);
+                offs.for_each(v, |_, n| {
+                    if mask.get(n) || visited.get(n) {
+                        return;
+                    }
+                    if unseen(n) {
+                        visited.set(n, true);
+                        stack.push(n);
+                    } else if solid(n) {
+                        open = true;
+                    }
+                });
+            }
+            if open {
+                added.truncate(first);
+            }
+        });
+    }
+    for &v in &added {
+        mask.set(v as usize, true);
+    }
+    added.len()
+}
+
+/// Whether a voxel is solid and unseen (see [`UNSEEN_SHARE`]); `None` when
+/// no solid voxel has a feature.
+fn unseen_test(cache: &FeatureCache, floor: f32) -> Option<impl Fn(usize) -> bool + '_> {
+    let mut norms: Vec<f32> = (0..cache.voxels.len())
+        .filter(|&r| cache.sigma[r] > floor && cache.inv_norm[r] > 0.0)
+        .map(|r| 1.0 / cache.inv_norm[r])
+        .collect();
+    if norms.is_empty() {
+        return None;
+    }
+    let mid = norms.len() / 2;
+    let median = *norms.select_nth_unstable_by(mid, f32::total_cmp).1;
+    let limit = UNSEEN_SHARE * median;
+    Some(move |v: usize| {
+        cache
+            .index
+            .slot(v)
+            .is_some_and(|r| cache.sigma[r] > floor && (cache.inv_norm[r] == 0.0 || 1.0 / cache.inv_norm[r] < limit))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::{Aabb, FieldBuilder};
+    use glam::Vec3;
+
+    /// A solid 16×8×8 bar of two objects side by side: the left one
+    /// (x < 8, feature [1, 0]) has an unseen core (zero features) at
+    /// x 2–5, y and z 2–5; an unseen slab at x 7–8 straddles the two
+    /// objects (the right one, x ≥ 8, has feature [0, 1]).
+    fn two_blocks() -> crate::field::Field {
+        FieldBuilder::new(Aabb::new(Vec3::ZERO, Vec3::new(15.0, 7.0, 7.0)), [16, 8, 8]).build(
+            |_| 50.0,
+            |_| Vec3::ONE,
+            Some((2, &|p: Vec3, out: &mut [f32]| {
+                let core = (1.5..5.5).contains(&p.x) && (1.5..5.5).contains(&p.y) && (1.5..5.5).contains(&p.z);
+                let slab = (6.5..8.5).contains(&p.x) && (2.5..4.5).contains(&p.y) && (2.5..4.5).contains(&p.z);
+                let f = if core || slab {
+                    [0.0, 0.0]
+                } else if p.x < 7.5 {
+                    [1.0, 0.0]
+                } else {
+                    [0.0, 1.0]
+                };
+                out.copy_from_slice(&f);
+            })),
+        )
+    }
+
+    #[test]
+    fn an_unseen_core_joins_the_object_around_it_and_a_shared_pocket_does_not() {
+        let cache = FeatureCache::build(&two_blocks()).unwrap();
+        let res = cache.geom.res;
+        let xyz = |v: usize| (v % res[0], v / res[0] % res[1], v / (res[0] * res[1]));
+        let core = |v: usize| {
+            let (x, y, z) = xyz(v);
+            (2..=5).contains(&x) && (2..=5).contains(&y) && (2..=5).contains(&z)
+        };
+        // The left object's seen voxels: everything left of the slab that
+        // is not its core or the slab.
+        let unseen = |v: usize| {
+            let (x, y, z) = xyz(v);
+            core(v) || ((7..=8).contains(&x) && (3..=4).contains(&y) && (3..=4).contains(&z))
+        };
+        let mut mask = Bitmap::from_fn(res, |v| xyz(v).0 < 8 && !unseen(v));
+        let before = mask.clone();
+        let added = fill_enclosed_unseen(&cache, &mut mask, 1e-3);
+        assert_eq!(added, 4 * 4 * 4, "the core, and nothing else");
+        for v in 0..mask.len() {
+            assert_eq!(mask.get(v), before.get(v) || core(v), "voxel {:?}", xyz(v));
+        }
+        // With nothing seen at all there is nothing to measure against.
+        let mut empty = Bitmap::new(res);
+        assert_eq!(fill_enclosed_unseen(&cache, &mut empty, 1e-3), 0);
+    }
+}
