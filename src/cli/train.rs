@@ -84,6 +84,10 @@ pub struct Args {
     /// held-out view).
     #[arg(long, default_value_t = 500)]
     pub eval_every: usize,
+    /// Score only this many held-out views, evenly spread, at the end
+    /// (default: all; lego's 100 val views at 800×800 take minutes).
+    #[arg(long)]
+    pub eval_views: Option<usize>,
     /// Time against quality: `fast` (half the iterations on a grid 3/4 as
     /// fine), `default`, `best` (twice the iterations on a grid 5/4 as fine).
     #[arg(long, value_enum, default_value_t = isrf::train::Quality::Default)]
@@ -281,6 +285,9 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         Session::new(ds, config)?
     };
+    if let Some(n) = a.eval_views {
+        session.keep_eval_views(n);
+    }
     if let (Some(src), true) = (&teacher, session.trainer.config.feature_iters > 0) {
         attach_teacher(&mut session, src, &a)?;
     }

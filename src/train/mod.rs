@@ -12,6 +12,7 @@
 pub mod checkpoint;
 pub mod grads;
 pub mod march;
+pub mod mining;
 pub mod model;
 pub mod optim;
 pub mod pca;

@@ -5,6 +5,7 @@
 
 use super::grads::{gather, GradBuf, GradLog};
 use super::march::{backward, forward, MarchOpts, RayOut, Scratch};
+use super::mining::{uniform_estimate, MinedBatch, RayMiner};
 use super::model::{res_for, Model, PRUNED_RAW};
 use super::optim::{adam_step, add_tv, corrected_lr, dense_adam_step, merge_marks, AdamParams, Layout, Moments, Tv};
 use super::rays::RaySet;
@@ -83,6 +84,13 @@ pub struct TrainConfig {
     /// stages free to spread weight (their cells are too large for thin
     /// surfaces) and compacts the surfaces of the full grid only.
     pub distortion_coarse: f32,
+    /// Share of each radiance batch drawn in proportion to the running
+    /// colour error of its stretch of image row ([`super::mining`]); 0:
+    /// uniform batches.
+    pub mining: f32,
+    /// Exponent α of the mined rays' importance weights (0: plain hard
+    /// mining, 1: unbiased).
+    pub mining_alpha: f32,
     pub background: [f32; 3],
     /// Initial box; `None`: [`super::rays::default_bounds`] of the dataset.
     pub bounds: Option<[[f32; 3]; 2]>,
@@ -153,6 +161,8 @@ impl Default for TrainConfig {
             tv_last_stage: 1.0,
             distortion: 0.0,
             distortion_coarse: 1.0,
+            mining: 0.0,
+            mining_alpha: 0.5,
             background: [1.0; 3],
             bounds: None,
             seed: 0,
@@ -248,6 +258,13 @@ impl TrainConfig {
             OutOfRange,
             finite.iter().all(|x| x.is_finite() && *x >= 0.0),
             "learning rates, floors and weights must be finite and ≥ 0"
+        );
+        crate::ensure_within!(
+            OutOfRange,
+            (0.0..=1.0).contains(&self.mining) && (0.0..=1.0).contains(&self.mining_alpha),
+            "mining share and mining_alpha must be in [0, 1], got {} and {}",
+            self.mining,
+            self.mining_alpha
         );
         crate::ensure_within!(
             OutOfRange,
@@ -353,6 +370,8 @@ pub struct Trainer {
     grads: GradBuf,
     logs: Vec<GradLog>,
     useful: super::rays::RaySubset,
+    /// Running errors for mined batches (`config.mining` > 0), over `useful`.
+    miner: Option<RayMiner>,
 }
 
 impl Trainer {
@@ -390,6 +409,7 @@ impl Trainer {
             grads: GradBuf::default(),
             logs: vec![],
             useful: Default::default(),
+            miner: None,
         };
         // Keeps the checkpoint's moments where they fit the model.
         t.reset_buffers(true);
@@ -424,7 +444,14 @@ impl Trainer {
                 t: 0,
             };
         }
-        self.useful = self.rays.hitting(&self.model.geom.bounds);
+        let useful = self.rays.hitting(&self.model.geom.bounds);
+        // The miner's cells are positions in `useful`: they keep their
+        // errors while the rays stay the same (most stage changes).
+        if useful != self.useful || self.miner.is_none() {
+            self.miner = (self.config.mining > 0.0)
+                .then(|| RayMiner::new(useful.len(), self.config.mining, self.config.mining_alpha));
+        }
+        self.useful = useful;
     }
 
     /// Drops the distilled features and rewinds to the start of the feature
@@ -601,23 +628,26 @@ impl Trainer {
             colour: carried.is_none(),
             ..opts
         };
-        let batch = self.sample_batch();
+        let (batch, mined) = self.sample_batch();
         let nb = batch.len().max(1) as f32;
         let nt = self.logs.len();
         let chunk = batch.len().div_ceil(nt).max(1);
         let (model, rays, teacher) = (&self.model, &self.rays, self.teacher.as_ref());
         let (lambda, guide) = (self.config.feature_lambda, self.config.feature_guide);
-        let results: Vec<(f64, f64, u64)> = self
+        let weights = mined.as_ref().map(|m| &m.weights[..]);
+        let results: Vec<(f64, f64, u64, Vec<f32>)> = self
             .logs
             .par_iter_mut()
-            .zip(batch.par_chunks(chunk))
-            .map(|(log, idx)| {
+            .zip(batch.par_chunks(chunk).enumerate())
+            .map(|(log, (ci, idx))| {
                 let mut s = Scratch::default();
                 let fc = if features { teacher.map_or(0, |t| t.channels) } else { 0 };
                 let mut target = vec![0.0f32; fc];
                 let mut h = vec![0.0f32; fc];
                 let (mut se, mut fe, mut ns) = (0.0f64, 0.0f64, 0u64);
-                for &ri in idx {
+                // Per-ray errors, for the miner.
+                let mut errors = Vec::with_capacity(if weights.is_some() { idx.len() } else { 0 });
+                for (j, &ri) in idx.iter().enumerate() {
                     let ri = ri as usize;
                     let ray = rays.ray(ri);
                     let opts = MarchOpts {
@@ -629,7 +659,11 @@ impl Trainer {
                     let target_rgb = rays.color(ri);
                     let d = out.color - target_rgb;
                     se += d.length_squared() as f64;
-                    let g = d * (2.0 / (3.0 * nb));
+                    let mut g = d * (2.0 / (3.0 * nb));
+                    if let Some(w) = weights {
+                        g *= w[ci * chunk + j];
+                        errors.push(d.length_squared() / 3.0);
+                    }
                     if let (true, Some(t)) = (fc > 0, teacher) {
                         let colour = target_rgb.to_array();
                         t.sample_guided(rays.view(ri), rays.pixel(ri), colour, guide, &mut target);
@@ -641,7 +675,7 @@ impl Trainer {
                     }
                     backward(model, &ray, &opts, &mut s, g, &h, log);
                 }
-                (se, fe, ns)
+                (se, fe, ns, errors)
             })
             .collect();
         gather(&self.model, &mut self.logs, &mut self.grads);
@@ -651,7 +685,13 @@ impl Trainer {
         self.iter += 1;
         let se: f64 = results.iter().map(|r| r.0).sum();
         let fe: f64 = results.iter().map(|r| r.1).sum();
-        let loss = carried.unwrap_or((se / (3.0 * nb as f64)) as f32);
+        let mut loss = carried.unwrap_or((se / (3.0 * nb as f64)) as f32);
+        if let (Some(m), Some(miner)) = (&mined, self.miner.as_mut()) {
+            let errors: Vec<f32> = results.iter().flat_map(|r| r.3.iter().copied()).collect();
+            miner.record(&m.positions, &errors);
+            // The batch over-samples hard rays: show the uniform loss.
+            loss = uniform_estimate(&errors, &m.ratios) as f32;
+        }
         let fc = self.model.features.as_ref().map_or(1, |f| f.channels) as f64;
         let stats = StepStats {
             iter: self.iter,
@@ -668,19 +708,26 @@ impl Trainer {
     }
 
     /// Random ray indices (deterministic per seed and iteration), sorted so
-    /// that neighbouring rays of a view run one after another (cache).
-    fn sample_batch(&self) -> Vec<u32> {
+    /// that neighbouring rays of a view run one after another (cache); with
+    /// mining (radiance phase only), the mined batch they come from.
+    fn sample_batch(&self) -> (Vec<u32>, Option<MinedBatch>) {
         let n = self.useful.len();
         if n == 0 {
-            return vec![];
+            return (vec![], None);
         }
         // One generator per iteration (resumable), seeded through a mixing
         // step: consecutive raw seeds would give overlapping sequences.
         let mixed = SplitMix64::new(self.config.seed.wrapping_mul(0x1000_0000_01B3) ^ self.iter as u64).next_u64();
         let mut rng = SplitMix64::new(mixed);
+        if let Some(miner) = self.miner.as_ref().filter(|m| m.len() == n && !self.in_feature_phase()) {
+            let m = miner.sample(&mut rng, self.config.batch);
+            // Ascending positions give ascending ray indices.
+            let b = m.positions.iter().map(|&k| self.useful.get(k)).collect();
+            return (b, Some(m));
+        }
         let mut b: Vec<u32> = (0..self.config.batch).map(|_| self.useful.get(rng.below(n))).collect();
         b.sort_unstable();
-        b
+        (b, None)
     }
 
     /// TV regularisers and the sparse Adam step on everything touched.
