@@ -43,14 +43,29 @@ fn training_and_distillation_recover_a_rendered_demo_scene() {
         prune_every: 200,
         feature_iters: 200,
         feature_res: 32,
+        prune_first_stage: true,
         ..Default::default()
     };
     let mut t = demo_trainer(&capture, config).unwrap();
     let mut first = None;
+    let mut active = vec![];
     while !t.is_done() {
         let s = t.step().unwrap();
         first.get_or_insert(s.psnr);
+        active.push(t.model.active_count());
     }
+    // The first stage (iterations 0..250) is pruned halfway through, and
+    // the field still fits (below).
+    assert!(
+        active[126] < active[124] / 2,
+        "first stage pruned at 125: {} -> {} active",
+        active[124],
+        active[126]
+    );
+    assert!(t
+        .notes
+        .iter()
+        .any(|n| n.starts_with("iteration 125: first stage pruned")));
     let last = t.history.last().unwrap().psnr;
     // Distilling into the frozen field keeps no moments for density and
     // colour; its checkpoint resumes with the feature moments as saved, and

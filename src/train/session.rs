@@ -66,6 +66,7 @@ pub fn preset(kind: DatasetKind) -> TrainConfig {
             iters: 9500,
             res: 160,
             coarse_res: 64,
+            prune_first_stage: true,
             ..base
         },
         // Forward-facing: the NDC box is already tight; depth needs far
