@@ -28,23 +28,30 @@ fn feature_agreement(got: &[f32], want: &[f32], channels: usize) -> (f64, usize)
     (sum / n.max(1) as f64, n)
 }
 
+/// Two stages on a 32 grid over the 40×30 capture: seconds, yet a fit.
+fn small_run() -> TrainConfig {
+    TrainConfig {
+        iters: 500,
+        batch: 2048,
+        res: 32,
+        coarse_res: 20,
+        stages: 2,
+        prune_every: 200,
+        ..Default::default()
+    }
+}
+
 #[test]
 fn training_and_distillation_recover_a_rendered_demo_scene() {
     let capture = demo_capture("tabletop", 32, 20, 40).unwrap();
     let channels = capture.teacher.channels;
     // Degree 1 fits this Lambertian scene as well as degree 2, faster.
     let config = TrainConfig {
-        iters: 500,
-        batch: 2048,
-        res: 32,
-        coarse_res: 20,
         sh_degree: 1,
-        stages: 2,
-        prune_every: 200,
         feature_iters: 200,
         feature_res: 32,
         prune_first_stage: true,
-        ..Default::default()
+        ..small_run()
     };
     let mut t = demo_trainer(&capture, config).unwrap();
     let mut first = None;
@@ -138,14 +145,8 @@ fn vm_appearance_trains_and_survives_a_checkpoint() {
     use isrf::train::trainer::AppearanceKind;
     let capture = demo_capture("tabletop", 32, 20, 40).unwrap();
     let config = TrainConfig {
-        iters: 500,
-        batch: 2048,
-        res: 32,
-        coarse_res: 20,
-        stages: 2,
-        prune_every: 200,
         appearance: AppearanceKind::Vm,
-        ..Default::default()
+        ..small_run()
     };
     let mut t = demo_trainer(&capture, config).unwrap();
     while !t.is_done() {
@@ -182,15 +183,10 @@ fn mined_batches_fit_the_scene_and_show_the_loss_of_every_pixel() {
     let capture = demo_capture("tabletop", 32, 20, 40).unwrap();
     let config = TrainConfig {
         iters: 400,
-        batch: 2048,
-        res: 32,
-        coarse_res: 20,
         sh_degree: 1,
-        stages: 2,
-        prune_every: 200,
         mining: 0.5,
         mining_alpha: 0.5,
-        ..Default::default()
+        ..small_run()
     };
     let mut t = demo_trainer(&capture, config.clone()).unwrap();
     while !t.is_done() {
