@@ -364,14 +364,15 @@ impl Session {
         checkpoint::save(path, &t.config, &t.model, &t.opt, t.iter, &t.history, &self.data_key)
     }
 
-    /// Mean PSNR of up to `max_views` held-out views (spread over the list)
-    /// rendered with the training forward pass, and a preview of the first
-    /// one; `None` without held-out views (or when one cannot be read).
-    /// Keeps `n` of the held-out views, evenly spread (the first always).
+    /// Keeps `n` of the held-out views, evenly spread (the first always;
+    /// 0 leaves none, and the run is not scored).
     pub fn keep_eval_views(&mut self, n: usize) {
         self.eval_views = evenly_spread(&self.eval_views, n);
     }
 
+    /// Mean PSNR of up to `max_views` held-out views (spread over the list)
+    /// rendered with the training forward pass, and a preview of the first
+    /// one; `None` without held-out views (or when one cannot be read).
     /// The preview's view is rendered whole; the others on every second
     /// pixel across and down, a quarter of the rays: these looks ran every
     /// 500 iterations and took a tenth of fern's training time.

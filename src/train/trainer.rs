@@ -567,23 +567,18 @@ impl Trainer {
         }
         let pe = self.config.prune_every;
         let first = sched.get(1).map_or(usize::MAX, |s| s.0);
-        if self.config.prune_first_stage && first < usize::MAX && self.iter == first / 2 && self.iter > 0 {
+        // Halfway through the first stage (`prune_first_stage`); then every
+        // `prune_every` iterations after it.
+        let halfway = self.config.prune_first_stage && first < usize::MAX && self.iter == first / 2;
+        let periodic = pe > 0 && self.iter.is_multiple_of(pe) && self.iter > first;
+        if self.iter > 0 && self.iter < self.config.iters && (halfway || periodic) {
             let kept = self.prune_within_stage();
+            let what = if halfway { "first stage pruned" } else { "pruned" };
             self.notes.push(format!(
-                "iteration {}: first stage pruned to {kept} of {} voxels",
+                "iteration {}: {what} to {kept} of {} voxels",
                 self.iter,
                 self.model.len()
             ));
-        }
-        if pe > 0 && self.iter > 0 && self.iter.is_multiple_of(pe) && self.iter < self.config.iters {
-            if self.iter > first {
-                let kept = self.prune_within_stage();
-                self.notes.push(format!(
-                    "iteration {}: pruned to {kept} of {} voxels",
-                    self.iter,
-                    self.model.len()
-                ));
-            }
         }
         if self.iter == self.config.iters && self.config.feature_iters > 0 && self.model.features.is_none() {
             let ch = self
@@ -732,7 +727,8 @@ impl Trainer {
         // step: consecutive raw seeds would give overlapping sequences.
         let mixed = SplitMix64::new(self.config.seed.wrapping_mul(0x1000_0000_01B3) ^ self.iter as u64).next_u64();
         let mut rng = SplitMix64::new(mixed);
-        if let Some(miner) = self.miner.as_ref().filter(|m| m.len() == n && !self.in_feature_phase()) {
+        // `reset_buffers` remakes the miner whenever `useful` changes.
+        if let Some(miner) = self.miner.as_ref().filter(|_| !self.in_feature_phase()) {
             let m = miner.sample(&mut rng, self.config.batch);
             // Ascending positions give ascending ray indices.
             let b = m.positions.iter().map(|&k| self.useful.get(k)).collect();
