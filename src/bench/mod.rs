@@ -5,6 +5,7 @@
 //! - [`render`]: rays per second of the CPU reference renderer.
 //! - [`segment`]: per-stage times of stroke → mask against the dense
 //!   reference implementation, with an identity check of the outputs.
+//! - [`strokes`]: stroke-to-mask latency per stage on a user's own field.
 //! - [`train`]: trainer throughput per stage and phase.
 //! - [`quality`]: segmentation quality with exact ground truth on fields
 //!   trained from renders of the demo scenes.
@@ -14,6 +15,7 @@ pub mod quality;
 pub mod render;
 pub mod segment;
 pub mod splats;
+pub mod strokes;
 pub mod train;
 
 use std::fmt;

@@ -159,6 +159,19 @@ pub struct SegmentArgs {
     /// Skip the dense reference (it needs res^3 x channels x 4 bytes of memory).
     #[arg(long)]
     pub no_dense: bool,
+    /// Measure on this field (with features) instead of a demo scene: the
+    /// strokes of --strokes replayed with the default pipeline, per stroke.
+    #[arg(long, requires = "strokes")]
+    pub field: Option<std::path::PathBuf>,
+    /// Stroke documents for --field, replayed in order.
+    #[arg(long, num_args = 1.., requires = "field")]
+    pub strokes: Vec<std::path::PathBuf>,
+    /// Camera set for strokes whose camera is given only by name (the
+    /// `<field>.cameras.json` that `isrf train` writes).
+    #[arg(long, requires = "field")]
+    pub cameras: Option<std::path::PathBuf>,
+    #[command(flatten)]
+    pub params: super::segment::ParamArgs,
 }
 
 fn check_res(res: &[usize]) -> Result<usize> {
@@ -200,6 +213,9 @@ fn run_render(a: RenderArgs) -> Result<()> {
 }
 
 fn run_segment(a: SegmentArgs) -> Result<()> {
+    if let Some(field) = &a.field {
+        return run_field_strokes(field, &a);
+    }
     let largest = check_res(&a.res)?;
     println!(
         "stroke -> mask, {} demo scene, object '{}', {} rayon threads, median of up to {} runs per stage",
@@ -238,6 +254,39 @@ fn run_segment(a: SegmentArgs) -> Result<()> {
         r.config.res,
         r.stroke_to_mask_ms()
     );
+    Ok(())
+}
+
+/// `isrf bench segment --field F --strokes S`: stroke latency on a real field.
+fn run_field_strokes(path: &std::path::Path, a: &SegmentArgs) -> Result<()> {
+    use isrf::bench::strokes::{bench_field_strokes, field_stroke_table};
+    let p = a.params.params()?;
+    let cameras = a.cameras.as_deref().map(isrf::camera::CameraSet::load).transpose()?;
+    let mut strokes = vec![];
+    for s in &a.strokes {
+        strokes.extend(isrf::segment::load_strokes_on(s, cameras.as_ref())?);
+    }
+    let (field, load_ms) = isrf::bench::time_ms(|| isrf::field::Field::load(path));
+    let field = std::sync::Arc::new(field?);
+    let r = bench_field_strokes(field, &strokes, &p, a.repeats)?;
+    println!(
+        "stroke -> mask on {}: grid {:?}, {} cached voxels x {} channels, {} rayon threads, median of {} runs, load average {}",
+        path.display(),
+        r.res,
+        r.cached_voxels,
+        r.channels,
+        r.threads,
+        a.repeats,
+        r.load_average.map_or_else(|| "n/a".into(), |l| format!("{l:.2}"))
+    );
+    println!(
+        "one-off per field (not in the stroke times): load {load_ms:.0} ms, feature cache {:.0} ms, macro grid {:.0} ms; peak RSS {}",
+        r.cache_ms,
+        r.macro_ms,
+        isrf::bench::mb_or_na(r.peak_rss)
+    );
+    print!("{}", field_stroke_table(&r));
+    println!("slowest stroke-to-mask ms: {:.1}", r.worst_ms());
     Ok(())
 }
 
