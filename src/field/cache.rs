@@ -28,6 +28,10 @@ pub struct FeatureCache {
     pub feats: Vec<f32>,
     /// 1 / ‖feature‖ per occupied voxel (0 for a zero feature).
     pub inv_norm: Vec<f32>,
+    /// Colour of each occupied voxel averaged over directions
+    /// ([`super::Sampler::diffuse_color`]): the graph cut's colour terms
+    /// read it for every voxel it labels, on every stroke.
+    pub colours: Vec<glam::Vec3>,
 }
 
 /// Segmenting needs semantic features: the check shared by the cache and
@@ -57,14 +61,17 @@ impl FeatureCache {
         let index = RankIndex::new(bits);
         let sigma: Vec<f32> = voxels.par_iter().map(|&v| d.sigma_at(v as usize)).collect();
         let mut feats = vec![0.0f32; voxels.len() * channels];
+        let mut colours = vec![glam::Vec3::ZERO; voxels.len()];
         feats
             .par_chunks_mut(channels * 256)
+            .zip(colours.par_chunks_mut(256))
             .enumerate()
-            .for_each(|(chunk, out)| {
+            .for_each(|(chunk, (out, colour))| {
                 let mut s = field.sampler();
-                for (j, row) in out.chunks_mut(channels).enumerate() {
-                    let v = voxels[chunk * 256 + j] as usize;
-                    s.features(geom.point_of(v), row);
+                for (j, (row, c)) in out.chunks_mut(channels).zip(colour).enumerate() {
+                    let p = geom.point_of(voxels[chunk * 256 + j] as usize);
+                    s.features(p, row);
+                    *c = s.diffuse_color(p);
                 }
             });
         let inv_norm = feats
@@ -86,6 +93,7 @@ impl FeatureCache {
             sigma,
             feats,
             inv_norm,
+            colours,
         })
     }
     pub fn len(&self) -> usize {
@@ -99,6 +107,6 @@ impl FeatureCache {
         &self.feats[r * self.channels..(r + 1) * self.channels]
     }
     pub fn memory_bytes(&self) -> usize {
-        self.feats.len() * 4 + self.voxels.len() * 12 + self.index.bits().words().len() * 12
+        self.feats.len() * 4 + self.voxels.len() * 24 + self.index.bits().words().len() * 12
     }
 }

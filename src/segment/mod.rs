@@ -356,7 +356,7 @@ fn segment_anchored(
         GrowthRule::Paper => p.seed_floor,
         _ => p.sigma_floor(cache.geom.spacing().min_element()),
     };
-    let mut region = nnfm_seed(cache, &centres, p.theta, floor);
+    let (mut region, mut dist) = nnfm::nnfm_seed_with_distances(cache, &centres, p.theta, floor);
     if let Some(joined) = anchor::joined_seeds(&region, anchors) {
         region = joined;
     }
@@ -364,13 +364,13 @@ fn segment_anchored(
     t.seed_voxels = region.count();
     let t0 = Instant::now();
     if p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0) {
-        let s = stable::stable_region(cache, &centres, &region, p.theta, floor, &p.stable);
+        let s = stable::stable_region(cache, &mut dist, &region, p.theta, floor, &p.stable);
         t.grow_ms = ms_since(t0);
         t.grow_steps = 1;
         t.threshold = s.threshold;
         let t0 = Instant::now();
         let hard = anchor::near_anchors(&region, anchors);
-        let region = cut_region(cache, field, &centres, &s, &hard, anchors, negatives, p).unwrap_or(s.region);
+        let region = cut_region(cache, field, &mut dist, &s, &hard, anchors, negatives, p).unwrap_or(s.region);
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
         return Ok((region, centres));
@@ -393,7 +393,7 @@ fn segment_anchored(
 fn cut_region(
     cache: &FeatureCache,
     field: Option<&Field>,
-    centres: &Centroids,
+    dist: &mut nnfm::StrokeDistances,
     s: &stable::StableRegion,
     hard: &[u32],
     anchors: &[u32],
@@ -403,12 +403,13 @@ fn cut_region(
     if p.cut.rounds == 0 || hard.is_empty() {
         return None;
     }
-    let colours = field.map(|f| voxel_colours(f, cache, &s.reached)).unwrap_or_default();
+    let colours = voxel_colours(field, cache, &s.reached);
+    let object_distance = dist.of_rows(cache, &cut::rows_of(cache, &s.reached));
     let input = cut::CutInput {
         cache,
         domain: &s.reached,
         colours: &colours,
-        object: centres,
+        object_distance: &object_distance,
         region: &s.region,
         hard,
         background_hard: &negatives.touched,
@@ -423,18 +424,15 @@ fn cut_region(
     anchor::joined_seeds(&cut, anchors)
 }
 
-/// The diffuse colour of `field` at each of `voxels` (of `cache`'s grid).
-fn voxel_colours(field: &Field, cache: &FeatureCache, voxels: &[u32]) -> Vec<glam::Vec3> {
-    use rayon::prelude::*;
+/// The diffuse colour (cached per field) of each of `voxels`, solid
+/// voxels of `cache`'s grid; none when the cut has no field to colour by.
+fn voxel_colours(field: Option<&Field>, cache: &FeatureCache, voxels: &[u32]) -> Vec<glam::Vec3> {
+    if field.is_none() {
+        return vec![];
+    }
     voxels
-        .par_chunks(4096)
-        .flat_map_iter(|chunk| {
-            let mut s = field.sampler();
-            chunk
-                .iter()
-                .map(|&v| s.diffuse_color(cache.geom.point_of(v as usize)))
-                .collect::<Vec<_>>()
-        })
+        .iter()
+        .map(|&v| cache.colours[cache.index.slot(v as usize).expect("solid voxel")])
         .collect()
 }
 
@@ -557,13 +555,14 @@ impl MaskBuilder {
             .filter(|&v| cache.index.slot(v).is_some())
             .map(|v| v as u32)
             .collect();
-        let colours = field.map(|f| voxel_colours(f, cache, &domain)).unwrap_or_default();
+        let colours = voxel_colours(field, cache, &domain);
         let hard = anchor::near_anchors(&self.mask, &self.positive_anchors);
+        let object_distance = nnfm::CentreSet::new(object).min_distances(cache, &cut::rows_of(cache, &domain));
         let input = cut::CutInput {
             cache,
             domain: &domain,
             colours: &colours,
-            object: &object,
+            object_distance: &object_distance,
             region: &self.mask,
             hard: &hard,
             background_hard: &self.negatives.touched,

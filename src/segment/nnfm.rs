@@ -77,28 +77,38 @@ fn dot8(a: &[f32], b: &[f32]) -> f32 {
 
 /// Seed bitmap over the cache's grid.
 pub fn nnfm_seed(cache: &FeatureCache, centres: &Centroids, theta: f32, floor: f32) -> Bitmap {
+    nnfm_seed_with_distances(cache, centres, theta, floor).0
+}
+
+/// The seed bitmap, and the distances it measured: every row the exact
+/// test saw (σ above `floor`, not ruled out by the cheap bound) gets its
+/// exact NNFM distance, the others are left for [`StrokeDistances::get`]
+/// to compute when asked. The stable flood and the graph cut ask for the
+/// distances of most of the rows a large object covers; measuring them
+/// here, blocked and in parallel, is what keeps them cheap.
+pub fn nnfm_seed_with_distances(
+    cache: &FeatureCache,
+    centres: &Centroids,
+    theta: f32,
+    floor: f32,
+) -> (Bitmap, StrokeDistances) {
     let mut bits = Bitmap::new(cache.geom.res);
+    let mut dist = StrokeDistances::new(cache, centres.clone());
     if centres.is_empty() {
-        return bits;
+        return (bits, dist);
     }
-    let norms: Vec<f32> = (0..centres.len())
-        .map(|k| centres.row(k).iter().map(|x| x * x).sum())
-        .collect();
-    let prune = Prune::new(centres, &norms, theta, cache.channels);
-    let test = Exact {
-        cache,
-        centres,
-        norms: &norms,
-        theta,
-    };
+    let norms = &dist.set.norms;
+    let prune = Prune::new(centres, norms, theta, cache.channels);
+    let test = Exact { cache, centres, norms };
     const CHUNK: usize = 4096;
-    let hits: Vec<Vec<u32>> = (0..cache.len())
-        .into_par_iter()
-        .step_by(CHUNK)
-        .map(|start| {
+    let hits: Vec<Vec<u32>> = dist
+        .d
+        .par_chunks_mut(CHUNK)
+        .enumerate()
+        .map(|(c, d)| {
+            let (start, end) = (c * CHUNK, c * CHUNK + d.len());
             let mut out = Vec::new();
             let mut block = vec![0.0f32; cache.channels * LANES];
-            let end = (start + CHUNK).min(cache.len());
             let mut r = start;
             while r + LANES <= end {
                 let mut pending = [false; LANES];
@@ -106,14 +116,23 @@ pub fn nnfm_seed(cache: &FeatureCache, centres: &Centroids, theta: f32, floor: f
                     *p = cache.sigma[r + l] > floor && !prune.rules_out(cache, r + l);
                 }
                 if pending.iter().any(|&p| p) {
-                    let matched = test.block(r, pending, &mut block);
-                    out.extend((0..LANES).filter(|&l| matched[l]).map(|l| cache.voxels[r + l]));
+                    let best = test.block(r, &mut block);
+                    for l in (0..LANES).filter(|&l| pending[l]) {
+                        d[r + l - start] = best[l];
+                        if best[l] < theta {
+                            out.push(cache.voxels[r + l]);
+                        }
+                    }
                 }
                 r += LANES;
             }
             for r in r..end {
-                if cache.sigma[r] > floor && test.one(r) {
-                    out.push(cache.voxels[r]);
+                if cache.sigma[r] > floor {
+                    let best = test.one(r);
+                    d[r - start] = best;
+                    if best < theta {
+                        out.push(cache.voxels[r]);
+                    }
                 }
             }
             out
@@ -122,7 +141,46 @@ pub fn nnfm_seed(cache: &FeatureCache, centres: &Centroids, theta: f32, floor: f
     for v in hits.into_iter().flatten() {
         bits.set(v as usize, true);
     }
-    bits
+    (bits, dist)
+}
+
+/// Each cache row's NNFM distance to one stroke's centres, measured once
+/// per stroke and shared by the seed, the stable flood and the graph cut
+/// (NaN: not measured yet).
+pub struct StrokeDistances {
+    set: CentreSet,
+    d: Vec<f32>,
+}
+
+impl StrokeDistances {
+    fn new(cache: &FeatureCache, centres: Centroids) -> Self {
+        StrokeDistances {
+            set: CentreSet::new(centres),
+            d: vec![f32::NAN; cache.len()],
+        }
+    }
+    pub fn centres(&self) -> &Centroids {
+        &self.set.centres
+    }
+    /// The distance of cache row `r`, measured now if it was not.
+    pub fn get(&mut self, cache: &FeatureCache, r: usize) -> f32 {
+        let d = self.d[r];
+        if !d.is_nan() {
+            return d;
+        }
+        let d = self.set.min_distance(cache, r);
+        self.d[r] = d;
+        d
+    }
+    /// The distances of `rows`, those not measured yet measured in parallel
+    /// (and kept).
+    pub fn of_rows(&mut self, cache: &FeatureCache, rows: &[usize]) -> Vec<f32> {
+        let missing: Vec<usize> = rows.iter().copied().filter(|&r| self.d[r].is_nan()).collect();
+        for (r, d) in missing.iter().zip(self.set.min_distances(cache, &missing)) {
+            self.d[*r] = d;
+        }
+        rows.iter().map(|&r| self.d[r]).collect()
+    }
 }
 
 /// The dot products of `LANES` rows, stored channel-major in `block`,
@@ -139,37 +197,38 @@ fn lane_dots(block: &[f32], centre: &[f32]) -> [f32; LANES] {
     acc
 }
 
-/// The exact test: min_k ‖φ̂ − c_k‖² < θ, as ‖φ̂‖² − 2 φ̂·c_k + ‖c_k‖².
+/// The exact distances min_k ‖φ̂ − c_k‖², as ‖φ̂‖² − 2 φ̂·c_k + ‖c_k‖²,
+/// bit for bit those of [`CentreSet::min_distance`].
 struct Exact<'a> {
     cache: &'a FeatureCache,
     centres: &'a Centroids,
     norms: &'a [f32],
-    theta: f32,
 }
 
 impl Exact<'_> {
-    /// d_k < θ given the raw dot product φ·c_k and 1/‖φ‖ (‖φ̂‖² = 1, or 0
-    /// for a zero feature).
+    /// d_k given the raw dot product φ·c_k and 1/‖φ‖ (‖φ̂‖² = 1, or 0 for
+    /// a zero feature).
     #[inline]
-    fn passes(&self, dot: f32, inv: f32, k: usize) -> bool {
+    fn distance(&self, dot: f32, inv: f32, k: usize) -> f32 {
         let self_n = if inv > 0.0 { 1.0 } else { 0.0 };
-        let dot = dot * inv;
-        self_n - 2.0 * dot + self.norms[k] < self.theta
+        (self_n - 2.0 * dot * inv + self.norms[k]).max(0.0)
     }
 
     /// One cache row.
-    fn one(&self, r: usize) -> bool {
+    fn one(&self, r: usize) -> f32 {
         let phi = self.cache.row(r);
-        (0..self.centres.len()).any(|k| {
-            let dot: f32 = phi.iter().zip(self.centres.row(k)).map(|(a, b)| a * b).sum();
-            self.passes(dot, self.cache.inv_norm[r], k)
-        })
+        (0..self.centres.len())
+            .map(|k| {
+                let dot: f32 = phi.iter().zip(self.centres.row(k)).map(|(a, b)| a * b).sum();
+                self.distance(dot, self.cache.inv_norm[r], k)
+            })
+            .fold(f32::INFINITY, f32::min)
     }
 
-    /// `LANES` consecutive cache rows from `r0`, of which the `pending` ones
-    /// are tested: transposes them into `block` (channel-major) and tests
-    /// every centre against all lanes at once.
-    fn block(&self, r0: usize, mut pending: [bool; LANES], block: &mut [f32]) -> [bool; LANES] {
+    /// `LANES` consecutive cache rows from `r0`: transposes them into
+    /// `block` (channel-major) and measures every centre against all lanes
+    /// at once.
+    fn block(&self, r0: usize, block: &mut [f32]) -> [f32; LANES] {
         let c = self.cache.channels;
         let rows = &self.cache.feats[r0 * c..(r0 + LANES) * c];
         for (l, row) in rows.chunks_exact(c).enumerate() {
@@ -177,20 +236,14 @@ impl Exact<'_> {
                 block[ch * LANES + l] = v;
             }
         }
-        let mut matched = [false; LANES];
+        let mut best = [f32::INFINITY; LANES];
         for k in 0..self.centres.len() {
             let acc = lane_dots(block, self.centres.row(k));
             for l in 0..LANES {
-                if pending[l] && self.passes(acc[l], self.cache.inv_norm[r0 + l], k) {
-                    matched[l] = true;
-                    pending[l] = false;
-                }
-            }
-            if !pending.iter().any(|&p| p) {
-                break;
+                best[l] = best[l].min(self.distance(acc[l], self.cache.inv_norm[r0 + l], k));
             }
         }
-        matched
+        best
     }
 }
 
@@ -199,7 +252,7 @@ impl Exact<'_> {
 #[derive(Clone, Debug)]
 pub struct CentreSet {
     pub centres: Centroids,
-    norms: Vec<f32>,
+    pub(super) norms: Vec<f32>,
     /// The centres transposed for [`CentreSet::min_distance`].
     blocks: CentreBlocks,
 }
@@ -370,6 +423,13 @@ mod tests {
         bits
     }
 
+    fn prune_of(centres: &Centroids, theta: f32) -> Prune {
+        let norms: Vec<f32> = (0..centres.len())
+            .map(|j| centres.row(j).iter().map(|x| x * x).sum())
+            .collect();
+        Prune::new(centres, &norms, theta, centres.dim)
+    }
+
     #[test]
     fn blocked_pruned_seed_equals_the_plain_loop() {
         let mut rng = SplitMix64::new(7);
@@ -395,11 +455,21 @@ mod tests {
             let norms: Vec<f32> = (0..k).map(|j| centres.row(j).iter().map(|x| x * x).sum()).collect();
             let prune = Prune::new(&centres, &norms, 0.4, 20);
             ruled_out += (0..cache.len()).filter(|&r| prune.rules_out(&cache, r)).count();
+            let set = CentreSet::new(centres.clone());
             for theta in [0.05f32, 0.2, 0.4, 0.8, 1.5] {
                 for floor in [0.0f32, 0.3] {
                     let want = reference(&cache, &centres, theta, floor);
-                    assert_eq!(nnfm_seed(&cache, &centres, theta, floor), want, "k {k} theta {theta}");
+                    let (seed, mut dist) = nnfm_seed_with_distances(&cache, &centres, theta, floor);
+                    assert_eq!(seed, want, "k {k} theta {theta}");
                     checked += want.count();
+                    // Every distance the seed measured, and every one
+                    // measured later, is the single-row one to the bit;
+                    // rows below the floor are left for later.
+                    for r in 0..cache.len() {
+                        let measured = !dist.d[r].is_nan();
+                        assert!(measured || cache.sigma[r] <= floor || prune_of(&centres, theta).rules_out(&cache, r));
+                        assert_eq!(dist.get(&cache, r).to_bits(), set.min_distance(&cache, r).to_bits());
+                    }
                 }
             }
         }

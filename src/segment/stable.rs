@@ -25,8 +25,7 @@
 //! d is computed lazily, only for voxels the flood touches.
 
 use super::grow::{GrowParams, Offsets};
-use super::kmeans::Centroids;
-use super::nnfm::CentreSet;
+use super::nnfm::StrokeDistances;
 use crate::field::{Bitmap, FeatureCache};
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -73,8 +72,7 @@ pub struct StableRegion {
 
 /// Bottleneck distances, in flood order: `(b, voxel)` pairs with
 /// non-decreasing b, every solid voxel with b ≤ `t_max` once.
-fn flood(cache: &FeatureCache, centres: &Centroids, seed: &Bitmap, floor: f32, t_max: f32) -> Vec<(f32, u32)> {
-    let dist = CentreSet::new(centres.clone());
+fn flood(cache: &FeatureCache, dist: &mut StrokeDistances, seed: &Bitmap, floor: f32, t_max: f32) -> Vec<(f32, u32)> {
     // The grower's 3×3×3 neighbourhood (its spatial weights are unused).
     let offs = Offsets::new(cache.geom.res, &GrowParams::default());
     let mut touched = Bitmap::new(cache.geom.res);
@@ -83,29 +81,42 @@ fn flood(cache: &FeatureCache, centres: &Centroids, seed: &Bitmap, floor: f32, t
     for v in seed.ones() {
         if let Some(r) = cache.index.slot(v) {
             touched.set(v, true);
-            heap.push(Reverse((dist.min_distance(cache, r).to_bits(), v as u32)));
+            heap.push(Reverse((dist.get(cache, r).to_bits(), v as u32)));
         }
     }
     let mut order = Vec::new();
+    // Voxels whose key equals the level being flooded: a neighbour no
+    // farther than the current bottleneck gets exactly that key, so it is
+    // flooded now, without a trip through the heap (inside an object most
+    // voxels are; the order among equal keys changes nothing).
+    let mut level: Vec<u32> = vec![];
     while let Some(Reverse((key, v))) = heap.pop() {
         let b = f32::from_bits(key);
         if b > t_max {
             break;
         }
-        order.push((b, v));
-        offs.for_each(v as usize, |_, n| {
-            if touched.get(n) {
-                return;
-            }
-            let Some(r) = cache.index.slot(n) else { return };
-            if cache.sigma[r] <= floor {
-                return;
-            }
-            touched.set(n, true);
-            // Keys never decrease along the flood, so the first touch
-            // gives n its bottleneck distance.
-            heap.push(Reverse((b.max(dist.min_distance(cache, r)).to_bits(), n as u32)));
-        });
+        level.push(v);
+        while let Some(v) = level.pop() {
+            order.push((b, v));
+            offs.for_each(v as usize, |_, n| {
+                if touched.get(n) {
+                    return;
+                }
+                let Some(r) = cache.index.slot(n) else { return };
+                if cache.sigma[r] <= floor {
+                    return;
+                }
+                touched.set(n, true);
+                // Keys never decrease along the flood, so the first touch
+                // gives n its bottleneck distance.
+                let d = dist.get(cache, r);
+                if d <= b {
+                    level.push(n as u32);
+                } else {
+                    heap.push(Reverse((d.to_bits(), n as u32)));
+                }
+            });
+        }
     }
     order
 }
@@ -135,17 +146,17 @@ pub fn stable_threshold(keys: &[f32], theta: f32, p: &StableParams) -> f32 {
     best.1
 }
 
-/// Grows `seed` (NNFM seeds of `centres` at θ, on solid voxels) to the
-/// stable region.
+/// Grows `seed` (NNFM seeds at θ of the stroke whose distances `dist`
+/// holds, on solid voxels) to the stable region.
 pub fn stable_region(
     cache: &FeatureCache,
-    centres: &Centroids,
+    dist: &mut StrokeDistances,
     seed: &Bitmap,
     theta: f32,
     floor: f32,
     p: &StableParams,
 ) -> StableRegion {
-    let order = flood(cache, centres, seed, floor, p.t_max);
+    let order = flood(cache, dist, seed, floor, p.t_max);
     let keys: Vec<f32> = order.iter().map(|o| o.0).collect();
     let threshold = stable_threshold(&keys, theta, p);
     let mut region = seed.clone();
@@ -153,8 +164,12 @@ pub fn stable_region(
         debug_assert!(b <= threshold);
         region.set(v as usize, true);
     }
-    let mut reached: Vec<u32> = order.into_iter().map(|o| o.1).collect();
-    reached.sort_unstable();
+    // Ascending through a bitmap: cheaper than sorting a million indices.
+    let mut bits = Bitmap::new(cache.geom.res);
+    for &(_, v) in &order {
+        bits.set(v as usize, true);
+    }
+    let reached: Vec<u32> = bits.ones().map(|v| v as u32).collect();
     StableRegion {
         region,
         threshold,
@@ -165,6 +180,79 @@ pub fn stable_region(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::field::{Aabb, FieldBuilder};
+    use crate::segment::kmeans::Centroids;
+    use crate::segment::nnfm::{nnfm_seed_with_distances, CentreSet};
+    use glam::Vec3;
+
+    /// The flood as plain Dijkstra on bottleneck keys: every touched voxel
+    /// through the heap.
+    fn reference_keys(cache: &FeatureCache, set: &CentreSet, seed: &Bitmap, floor: f32, t_max: f32) -> Vec<(u32, u32)> {
+        let offs = Offsets::new(cache.geom.res, &GrowParams::default());
+        let mut touched = Bitmap::new(cache.geom.res);
+        let mut heap = BinaryHeap::new();
+        for v in seed.ones() {
+            let r = cache.index.slot(v).unwrap();
+            touched.set(v, true);
+            heap.push(Reverse((set.min_distance(cache, r).to_bits(), v as u32)));
+        }
+        let mut out = vec![];
+        while let Some(Reverse((key, v))) = heap.pop() {
+            let b = f32::from_bits(key);
+            if b > t_max {
+                break;
+            }
+            out.push((v, key));
+            offs.for_each(v as usize, |_, n| {
+                let Some(r) = cache.index.slot(n) else { return };
+                if touched.get(n) || cache.sigma[r] <= floor {
+                    return;
+                }
+                touched.set(n, true);
+                heap.push(Reverse((b.max(set.min_distance(cache, r)).to_bits(), n as u32)));
+            });
+        }
+        out.sort_unstable();
+        out
+    }
+
+    #[test]
+    fn the_flood_gives_every_voxel_its_bottleneck_distance() {
+        // Features that wander across a blob with holes (σ 0 where the
+        // sine is low): many levels, plateaus and dead ends.
+        let feat = |p: Vec3, out: &mut [f32]| {
+            for (c, o) in out.iter_mut().enumerate() {
+                *o = (2.0 * p.x + 1.3 * p.y * (c as f32 + 1.0) - 0.7 * p.z * c as f32).cos();
+            }
+        };
+        let field = FieldBuilder::new(Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0)), [20; 3]).build(
+            |p| {
+                if (5.0 * p.x).sin() * (4.0 * p.z).cos() > -0.6 {
+                    1.0
+                } else {
+                    0.0
+                }
+            },
+            |_| Vec3::ONE,
+            Some((6, &feat)),
+        );
+        let cache = FeatureCache::build(&field).unwrap();
+        let unit: Vec<f32> = cache.row(40).iter().map(|x| x * cache.inv_norm[40]).collect();
+        let centres = Centroids { dim: 6, data: unit };
+        let set = CentreSet::new(centres.clone());
+        for (theta, t_max) in [(0.1f32, 1.5f32), (0.3, 0.8), (0.05, 4.0)] {
+            let (seed, mut dist) = nnfm_seed_with_distances(&cache, &centres, theta, 0.5);
+            assert!(seed.any());
+            let order = flood(&cache, &mut dist, &seed, 0.5, t_max);
+            let keys: Vec<f32> = order.iter().map(|o| o.0).collect();
+            assert!(keys.windows(2).all(|w| w[0] <= w[1]), "keys in flood order");
+            let mut got: Vec<(u32, u32)> = order.iter().map(|&(b, v)| (v, b.to_bits())).collect();
+            got.sort_unstable();
+            let want = reference_keys(&cache, &set, &seed, 0.5, t_max);
+            assert!(want.len() > seed.count(), "the flood must grow past the seeds");
+            assert_eq!(got, want, "theta {theta}, t_max {t_max}");
+        }
+    }
 
     #[test]
     fn the_threshold_sits_on_the_plateau_before_a_flood() {
