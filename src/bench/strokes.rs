@@ -68,8 +68,8 @@ pub fn bench_field_strokes(
     let cache = cache?;
     let (_, macro_ms) = time_ms(|| field.macro_grid().occupied_fraction());
     let scene = Scene::single(field.clone());
-    // runs[stroke] = (timings, wall, cpu, voxels) per repeat.
-    let mut runs: Vec<Vec<(Timings, f64, Option<f64>, usize)>> = vec![vec![]; strokes.len()];
+    // runs[stroke]: one per repeat.
+    let mut runs: Vec<Vec<Run>> = vec![vec![]; strokes.len()];
     for _ in 0..repeats {
         let mut builders: Vec<(String, MaskBuilder)> = vec![];
         for (i, s) in strokes.iter().enumerate() {
@@ -87,7 +87,12 @@ pub fn bench_field_strokes(
             let cpu = cpu0
                 .zip(process_cpu_ns())
                 .map(|(a, b)| b.saturating_sub(a) as f64 / 1e6);
-            runs[i].push((t, ms, cpu, b.mask.count()));
+            runs[i].push(Run {
+                t,
+                wall_ms: ms,
+                cpu_ms: cpu,
+                voxels: b.mask.count(),
+            });
         }
     }
     let strokes = strokes
@@ -108,24 +113,34 @@ pub fn bench_field_strokes(
     })
 }
 
-fn figures(s: &Stroke, runs: &[(Timings, f64, Option<f64>, usize)]) -> Result<StrokeFigures> {
-    let med = |f: fn(&Timings) -> f64| median(&runs.iter().map(|r| f(&r.0)).collect::<Vec<_>>());
+/// One replay of one stroke.
+#[derive(Clone)]
+struct Run {
+    t: Timings,
+    wall_ms: f64,
+    cpu_ms: Option<f64>,
+    /// The object's mask after the stroke.
+    voxels: usize,
+}
+
+fn figures(s: &Stroke, runs: &[Run]) -> Result<StrokeFigures> {
+    let med = |f: fn(&Timings) -> f64| median(&runs.iter().map(|r| f(&r.t)).collect::<Vec<_>>());
     let last = runs.last().expect("at least one run");
-    let mut stages = last.0;
+    let mut stages = last.t;
     stages.stroke_features_ms = med(|t| t.stroke_features_ms);
     stages.kmeans_ms = med(|t| t.kmeans_ms);
     stages.nnfm_ms = med(|t| t.nnfm_ms);
     stages.grow_ms = med(|t| t.grow_ms);
     stages.cut_ms = med(|t| t.cut_ms);
-    let cpus: Option<Vec<f64>> = runs.iter().map(|r| r.2).collect();
+    let cpus: Option<Vec<f64>> = runs.iter().map(|r| r.cpu_ms).collect();
     Ok(StrokeFigures {
         object: s.object.clone(),
         polarity: format!("{:?}", s.polarity).to_lowercase(),
         pixels: crate::segment::stroke_pixels(s)?.len(),
         stages,
-        wall_ms: median(&runs.iter().map(|r| r.1).collect::<Vec<_>>()),
+        wall_ms: median(&runs.iter().map(|r| r.wall_ms).collect::<Vec<_>>()),
         cpu_ms: cpus.map(|c| median(&c)),
-        mask_voxels: last.3,
+        mask_voxels: last.voxels,
         runs: runs.len(),
     })
 }
