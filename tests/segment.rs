@@ -504,6 +504,7 @@ fn slab_and_block(res: usize, block: bool) -> Field {
 
 #[test]
 fn stable_growth_takes_an_isolated_object_whole_and_stops_at_a_touching_one() {
+    use isrf::segment::nnfm::nnfm_seed_with_distances;
     use isrf::segment::stable::{stable_region, StableParams};
     let centre = Centroids {
         dim: 3,
@@ -515,13 +516,13 @@ fn stable_growth_takes_an_isolated_object_whole_and_stops_at_a_touching_one() {
         let g = f.geom();
         let cache = f.feature_cache().unwrap();
         let floor = p.sigma_floor(g.spacing().min_element());
-        let seed = nnfm_seed(&cache, &centre, p.theta, floor);
+        let (seed, mut dist) = nnfm_seed_with_distances(&cache, &centre, p.theta, floor);
         let slab = Bitmap::from_fn(g.res, |v| g.point_of(v).x <= 0.0 && f.density.sigma_at(v) > floor);
         assert!(
             seed.count() > 0 && seed.count() < slab.count(),
             "the seed misses the slab's far end"
         );
-        let s = stable_region(&cache, &centre, &seed, p.theta, floor, &StableParams::default());
+        let s = stable_region(&cache, &mut dist, &seed, p.theta, floor, &StableParams::default());
         assert_eq!(s.region, slab, "block {block}: threshold {}", s.threshold);
         // 2 − 2 cos 45° ≈ 0.59 is the slab's farthest feature, 2 − 2 cos 72°
         // ≈ 1.38 the block's.
