@@ -133,6 +133,7 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
     let edges = neighbour_edges(cache, input.domain, &rows, input.colours, p);
     let mut region: Vec<bool> = input.domain.iter().map(|&v| input.region.get(v as usize)).collect();
     let mut changed = false;
+    let mut graph: Option<Graph> = None;
     for round in 0..p.rounds {
         let seed = kmeans_seed + round as u64;
         let outside: Vec<bool> = (0..n).map(|i| (!region[i] && unlike[i]) || under_negative[i]).collect();
@@ -148,22 +149,25 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
         let bg = CentreSet::new(background);
         let d_bg = bg.min_distances(cache, &rows);
         let col_bg = colour_term(input.colours, &outside, p.background_k, seed, p.colour_unary, n);
-        let mut g = Graph::new(n, edges.len());
-        for i in 0..n {
+        // The first round builds the graph; later ones change only the
+        // region terms and resume from the last round's flow (voxels under
+        // the strokes stay tied to their side).
+        let g = graph.get_or_insert_with(|| {
+            let mut g = Graph::new(n, edges.len());
+            for &(i, j, w) in &edges {
+                g.add_edge(i as usize, j as usize, w, w);
+            }
+            for i in (0..n).filter(|&i| under_negative[i] || under[i]) {
+                let hard = if under_negative[i] { (0.0, HARD) } else { (HARD, 0.0) };
+                g.set_terminal(i, hard.0, hard.1);
+            }
+            g
+        });
+        for i in (0..n).filter(|&i| !under_negative[i] && !under[i]) {
             // Colour moves the balance by at most `colour_margin`: it
             // decides where the features hesitate, not against them.
             let shift = (col_obj[i] - col_bg[i]).clamp(-p.colour_margin, p.colour_margin);
-            g.add_terminal(i, d_bg[i] + (-shift).max(0.0), d_obj[i] + shift.max(0.0));
-        }
-        for i in 0..n {
-            if under_negative[i] {
-                g.add_terminal(i, 0.0, HARD);
-            } else if under[i] {
-                g.add_terminal(i, HARD, 0.0);
-            }
-        }
-        for &(i, j, w) in &edges {
-            g.add_edge(i as usize, j as usize, w, w);
+            g.set_terminal(i, d_bg[i] + (-shift).max(0.0), d_obj[i] + shift.max(0.0));
         }
         g.maxflow();
         let next: Vec<bool> = (0..n).map(|i| g.is_source(i)).collect();

@@ -13,6 +13,14 @@
 //!
 //! Capacities are `f32`; a terminal capacity of [`HARD`] ties a node to its
 //! terminal for good.
+//!
+//! After a max-flow, terminal capacities may change ([`Graph::set_terminal`])
+//! and [`Graph::maxflow`] then resumes from the flow and the search trees
+//! it left (Kohli & Torr's dynamic graph cuts, "Dynamic Graph Cuts for
+//! Efficient Inference in Markov Random Fields", PAMI 2007; the tree reuse
+//! of Kolmogorov's maxflow v3): GrabCut-style rounds change only the
+//! region terms, and most of the flow found by the last round still
+//! stands.
 
 use std::collections::VecDeque;
 
@@ -41,6 +49,11 @@ struct Node {
     /// terminal then.
     ts: u32,
     dist: u32,
+    /// Net terminal capacity (source − sink) as set, for
+    /// [`Graph::set_terminal`].
+    cap: f32,
+    /// Its terminal capacity changed since the last max-flow.
+    changed: bool,
 }
 
 #[derive(Clone, Copy)]
@@ -59,6 +72,10 @@ pub struct Graph {
     time: u32,
     active: VecDeque<u32>,
     orphans: Vec<u32>,
+    /// A max-flow ran: the next one resumes from its trees.
+    solved: bool,
+    /// Nodes whose terminal capacity changed since then.
+    changed: Vec<u32>,
 }
 
 impl Graph {
@@ -73,6 +90,8 @@ impl Graph {
                     sink: false,
                     ts: 0,
                     dist: 0,
+                    cap: 0.0,
+                    changed: false,
                 };
                 nodes
             ],
@@ -81,6 +100,8 @@ impl Graph {
             time: 0,
             active: VecDeque::new(),
             orphans: vec![],
+            solved: false,
+            changed: vec![],
         }
     }
 
@@ -100,6 +121,33 @@ impl Graph {
         }
         self.flow += s.min(t) as f64;
         n.tr_cap = s - t;
+        n.cap += source - sink;
+        if self.solved && !n.changed {
+            n.changed = true;
+            self.changed.push(i as u32);
+        }
+    }
+
+    /// Sets node `i`'s terminal capacities to `source` and `sink` (both ≥ 0),
+    /// replacing what [`Graph::add_terminal`] gave it. The next max-flow
+    /// leaves a minimum cut of the new graph; the flow it reports is that
+    /// of an equivalent graph (terminal capacities that differ by a
+    /// constant per node), not of this one.
+    pub fn set_terminal(&mut self, i: usize, source: f32, sink: f32) {
+        debug_assert!(source >= 0.0 && sink >= 0.0);
+        let old = self.nodes[i].cap;
+        let delta = (source - sink) - old;
+        if delta == 0.0 {
+            return;
+        }
+        // Only the net capacity matters to the cut: add the change on the
+        // side it grows.
+        if delta > 0.0 {
+            self.add_terminal(i, delta, 0.0);
+        } else {
+            self.add_terminal(i, 0.0, -delta);
+        }
+        self.nodes[i].cap = source - sink;
     }
 
     /// Adds an edge with capacity `cap` from `i` to `j` and `rev_cap` back.
@@ -121,9 +169,15 @@ impl Graph {
     }
 
     /// Runs max-flow; returns the flow, which equals the minimum cut's
-    /// capacity.
+    /// capacity (until [`Graph::set_terminal`] changes a capacity). A
+    /// second run resumes from the first's flow and trees.
     pub fn maxflow(&mut self) -> f64 {
-        self.init_trees();
+        if self.solved {
+            self.reuse_trees();
+        } else {
+            self.init_trees();
+        }
+        self.solved = true;
         while let Some(i) = self.next_active() {
             let Some(mid) = self.grow(i) else { continue };
             self.time += 1;
@@ -156,6 +210,71 @@ impl Graph {
             } else {
                 n.parent = NONE;
             }
+        }
+    }
+
+    /// Repairs the trees of the last max-flow where terminal capacities
+    /// changed: such a node hangs on its terminal again (in the tree its
+    /// new residual capacity points to, orphaning its children when it
+    /// changes tree), or becomes an orphan when none is left; it and the
+    /// neighbours that may now reach across become active.
+    fn reuse_trees(&mut self) {
+        self.active.clear();
+        self.time += 1;
+        let changed = std::mem::take(&mut self.changed);
+        for &i in &changed {
+            let n = &mut self.nodes[i as usize];
+            n.changed = false;
+            let (tr, parent, sink) = (n.tr_cap, n.parent, n.sink);
+            self.active.push_back(i);
+            if tr == 0.0 {
+                if parent != NONE {
+                    self.make_orphan(i);
+                }
+                continue;
+            }
+            let to_sink = tr < 0.0;
+            if parent == NONE || sink != to_sink {
+                self.nodes[i as usize].sink = to_sink;
+                self.leave_tree(i, parent != NONE);
+            }
+            let n = &mut self.nodes[i as usize];
+            n.parent = TERMINAL;
+            n.ts = self.time;
+            n.dist = 1;
+        }
+        self.adopt_orphans();
+    }
+
+    /// Node `i` joined the tree `self.nodes[i].sink`, from the other one
+    /// (`was_in`) or from no tree: its children in the old tree become
+    /// orphans, and the neighbours in the other tree it can now reach
+    /// across become active.
+    fn leave_tree(&mut self, i: u32, was_in: bool) {
+        let now_sink = self.nodes[i as usize].sink;
+        let mut a = self.nodes[i as usize].first;
+        while a != NONE {
+            let arc = self.arcs[a as usize];
+            let j = arc.head;
+            let nj = self.nodes[j as usize];
+            if !nj.changed && nj.parent != NONE && nj.sink != now_sink {
+                // j's parent arc (from j) is the reverse of a: i was its
+                // parent, in the tree i left.
+                if was_in && nj.parent == (a ^ 1) {
+                    self.make_orphan(j);
+                }
+                // Adopted again or not, j may reach i across the trees'
+                // boundary (residual capacity from the source side).
+                let cap = if now_sink {
+                    self.arcs[(a ^ 1) as usize].r_cap
+                } else {
+                    arc.r_cap
+                };
+                if cap > 0.0 {
+                    self.active.push_back(j);
+                }
+            }
+            a = arc.next;
         }
     }
 
@@ -550,6 +669,122 @@ mod tests {
             assert!(
                 (flow - reference).abs() < 1e-3 * (1.0 + reference),
                 "case {case} ({w}x{h}): {flow} vs {reference}"
+            );
+        }
+    }
+
+    /// Capacity of the cut `g` reports, under these capacities.
+    fn labelling_cost(g: &Graph, term: &[(f32, f32)], edges: &[(usize, usize, f32, f32)]) -> f64 {
+        let t: f64 = (0..term.len())
+            .map(|i| if g.is_source(i) { term[i].1 } else { term[i].0 } as f64)
+            .sum();
+        t + edges
+            .iter()
+            .map(|&(i, j, c, r)| match (g.is_source(i), g.is_source(j)) {
+                (true, false) => c as f64,
+                (false, true) => r as f64,
+                _ => 0.0,
+            })
+            .sum::<f64>()
+    }
+
+    #[test]
+    fn a_resumed_max_flow_cuts_the_changed_graph_minimally() {
+        // Grids solved, then most terminal capacities changed (some to
+        // zero, some across to the other terminal, some made hard), and
+        // solved again from the first run's trees: the cut must be a
+        // minimum cut of the changed graph, as a fresh solve finds.
+        let mut rng = SplitMix64::new(5);
+        let mut term_of = |r: &mut SplitMix64| -> (f32, f32) {
+            match r.below(6) {
+                0 => ((r.unit() * 5.0) as f32, 0.0),
+                1 => (0.0, (r.unit() * 5.0) as f32),
+                2 | 3 => ((r.unit() * 2.0) as f32, (r.unit() * 2.0) as f32),
+                4 => (HARD, 0.0),
+                _ => (0.0, 0.0),
+            }
+        };
+        let (mut changed_sides, mut cases) = (0, 0);
+        for case in 0..60 {
+            let (w, h) = (3 + rng.below(8), 3 + rng.below(8));
+            let n = w * h;
+            let term: Vec<(f32, f32)> = (0..n).map(|_| term_of(&mut rng)).collect();
+            let mut edges = vec![];
+            for y in 0..h {
+                for x in 0..w {
+                    let i = y * w + x;
+                    if x + 1 < w {
+                        edges.push((i, i + 1, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
+                    }
+                    if y + 1 < h {
+                        edges.push((i, i + w, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
+                    }
+                }
+            }
+            let mut g = graph(&term, &edges);
+            g.maxflow();
+            let before: Vec<bool> = (0..n).map(|i| g.is_source(i)).collect();
+            // Up to three rounds of changes, each solved from the last.
+            let mut now = term.clone();
+            for _round in 0..1 + rng.below(3) {
+                for (i, t) in now.iter_mut().enumerate() {
+                    if t.0 < HARD && rng.unit() < 0.6 {
+                        *t = term_of(&mut rng);
+                        g.set_terminal(i, t.0, t.1);
+                    }
+                }
+                g.maxflow();
+                let mut fresh = graph(&now, &edges);
+                let best = fresh.maxflow();
+                let got = labelling_cost(&g, &now, &edges);
+                let tol = 1e-3 * (1.0 + best.min(1e6));
+                assert!(best < 1e15, "case {case}: a finite cut exists");
+                assert!(
+                    (got - best).abs() < tol,
+                    "case {case}: resumed cut {got}, minimum {best}"
+                );
+                cases += 1;
+            }
+            changed_sides += (0..n).filter(|&i| g.is_source(i) != before[i]).count();
+        }
+        assert!(cases > 60 && changed_sides > 100, "the changes must move the cut");
+    }
+
+    #[test]
+    fn resumed_cuts_of_small_chains_match_fresh_ones() {
+        // Thousands of short chains with small integer capacities (many
+        // ties, nodes switching trees, nodes left with no terminal link),
+        // changed once after a first solve.
+        let mut rng = SplitMix64::new(1);
+        let term_of = |r: &mut SplitMix64| -> (f32, f32) {
+            match r.below(4) {
+                0 => (r.below(5) as f32, 0.0),
+                1 => (0.0, r.below(5) as f32),
+                2 => (r.below(3) as f32, r.below(3) as f32),
+                _ => (0.0, 0.0),
+            }
+        };
+        for case in 0..20_000 {
+            let n = 2 + rng.below(5);
+            let term: Vec<(f32, f32)> = (0..n).map(|_| term_of(&mut rng)).collect();
+            let edges: Vec<(usize, usize, f32, f32)> = (0..n - 1)
+                .map(|i| (i, i + 1, rng.below(4) as f32, rng.below(4) as f32))
+                .collect();
+            let mut g = graph(&term, &edges);
+            g.maxflow();
+            let mut now = term.clone();
+            for (i, t) in now.iter_mut().enumerate() {
+                if rng.below(2) == 0 {
+                    *t = term_of(&mut rng);
+                    g.set_terminal(i, t.0, t.1);
+                }
+            }
+            g.maxflow();
+            let best = graph(&now, &edges).maxflow();
+            let got = labelling_cost(&g, &now, &edges);
+            assert!(
+                (got - best).abs() < 1e-6,
+                "case {case}: resumed cut {got}, minimum {best}"
             );
         }
     }
