@@ -695,7 +695,7 @@ mod tests {
         // solved again from the first run's trees: the cut must be a
         // minimum cut of the changed graph, as a fresh solve finds.
         let mut rng = SplitMix64::new(5);
-        let mut term_of = |r: &mut SplitMix64| -> (f32, f32) {
+        let term_of = |r: &mut SplitMix64| -> (f32, f32) {
             match r.below(6) {
                 0 => ((r.unit() * 5.0) as f32, 0.0),
                 1 => (0.0, (r.unit() * 5.0) as f32),

@@ -327,7 +327,8 @@ impl Negatives {
     }
 }
 
-/// [`region_from_features`], also returning the stroke's K-means centres;
+/// [`region_from_features`], also returning the stroke's NNFM distances
+/// (and K-means centres);
 /// with `anchors` (voxels under the stroke), only the seeds joined to them
 /// are kept, and the stable rule's region is refined by a graph cut (with
 /// the colours of `field`, the field that owns `cache`, when given) that
@@ -342,7 +343,7 @@ fn segment_anchored(
     negatives: &Negatives,
     p: &SegmentParams,
     t: &mut Timings,
-) -> Result<(Bitmap, Centroids)> {
+) -> Result<(Bitmap, nnfm::StrokeDistances)> {
     ensure!(
         dim == cache.channels,
         "stroke features have {dim} channels, the field's cache {}",
@@ -373,7 +374,7 @@ fn segment_anchored(
         let region = cut_region(cache, field, &mut dist, &s, &hard, anchors, negatives, p).unwrap_or(s.region);
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
-        return Ok((region, centres));
+        return Ok((region, dist));
     }
     let mut g = Grower::new(cache, p.grow);
     if p.grow.rule != GrowthRule::Paper {
@@ -382,7 +383,7 @@ fn segment_anchored(
     t.grow_steps = g.grow(&mut region, p.growth, MAX_GROW_STEPS, |_| ());
     t.grow_ms = ms_since(t0);
     t.region_voxels = region.count();
-    Ok((region, centres))
+    Ok((region, dist))
 }
 
 /// The stable region refined by the graph cut over the voxels its flood
@@ -454,6 +455,9 @@ pub struct MaskBuilder {
     positive: Centroids,
     /// Voxels under the positive strokes so far, ascending.
     positive_anchors: Vec<u32>,
+    /// Distances to the positive strokes' centres, as far as measured: a
+    /// negative stroke's cut needs them over the whole mask.
+    positive_distances: Option<nnfm::StrokeDistances>,
     negatives: Negatives,
 }
 
@@ -463,6 +467,7 @@ impl MaskBuilder {
             mask,
             positive: Centroids { dim: 0, data: vec![] },
             positive_anchors: vec![],
+            positive_distances: None,
             negatives: Negatives::default(),
         }
     }
@@ -492,6 +497,10 @@ impl MaskBuilder {
                 self.positive_anchors.extend_from_slice(&s.anchors);
                 self.positive_anchors.sort_unstable();
                 self.positive_anchors.dedup();
+                match &mut self.positive_distances {
+                    Some(d) => d.merge(cache, s.dist),
+                    none => *none = Some(s.dist),
+                }
                 self.mask.union_with(&s.region)?;
                 if p.grow.rule != GrowthRule::Paper {
                     // What no view saw inside the object moves with it.
@@ -557,7 +566,11 @@ impl MaskBuilder {
             .collect();
         let colours = voxel_colours(field, cache, &domain);
         let hard = anchor::near_anchors(&self.mask, &self.positive_anchors);
-        let object_distance = nnfm::CentreSet::new(object).min_distances(cache, &cut::rows_of(cache, &domain));
+        let rows = cut::rows_of(cache, &domain);
+        let object_distance = match &mut self.positive_distances {
+            Some(d) if !self.positive.is_empty() => d.of_rows(cache, &rows),
+            _ => nnfm::CentreSet::new(object).min_distances(cache, &rows),
+        };
         let input = cut::CutInput {
             cache,
             domain: &domain,
@@ -682,6 +695,8 @@ struct StrokeRegion {
     region: Bitmap,
     /// The stroke's K-means centres.
     centres: Centroids,
+    /// Its NNFM distances, as far as measured.
+    dist: nnfm::StrokeDistances,
     /// The voxels under the stroke (its surface), ascending.
     anchors: Vec<u32>,
 }
@@ -707,7 +722,7 @@ fn segment_stroke(
     };
     t.stroke_features_ms = ms_since(t0);
     let field = anchor::layer_of(scene, cache).map(|l| &*l.field);
-    let (region, centres) = segment_anchored(
+    let (region, dist) = segment_anchored(
         cache,
         field,
         &samples.features,
@@ -720,7 +735,8 @@ fn segment_stroke(
     Ok((
         StrokeRegion {
             region,
-            centres,
+            centres: dist.centres().clone(),
+            dist,
             anchors,
         },
         t,

@@ -172,6 +172,22 @@ impl StrokeDistances {
         self.d[r] = d;
         d
     }
+    /// Makes these the distances to this stroke's centres and `other`'s
+    /// together (an object's positive strokes so far): the rows measured
+    /// here keep the smaller distance, `other`'s measured now where it had
+    /// not; the rest are measured against all the centres when asked. The
+    /// minimum over the strokes is bit for bit the distance to all their
+    /// centres at once.
+    pub fn merge(&mut self, cache: &FeatureCache, mut other: StrokeDistances) {
+        let known: Vec<usize> = (0..self.d.len()).filter(|&r| !self.d[r].is_nan()).collect();
+        for (&r, o) in known.iter().zip(other.of_rows(cache, &known)) {
+            self.d[r] = self.d[r].min(o);
+        }
+        let mut all = self.set.centres.clone();
+        all.data.extend_from_slice(&other.set.centres.data);
+        self.set = CentreSet::new(all);
+    }
+
     /// The distances of `rows`, those not measured yet measured in parallel
     /// (and kept).
     pub fn of_rows(&mut self, cache: &FeatureCache, rows: &[usize]) -> Vec<f32> {
@@ -399,6 +415,55 @@ mod tests {
                 let plain = set.distances(&cache, r).fold(f32::INFINITY, f32::min);
                 assert_eq!(single.to_bits(), plain.to_bits(), "row {r}, {k} centres");
             }
+        }
+    }
+
+    #[test]
+    fn merged_stroke_distances_are_the_distances_to_all_centres() {
+        let feat = |p: Vec3, out: &mut [f32]| {
+            for (c, o) in out.iter_mut().enumerate() {
+                *o = (2.1 * p.x - 1.3 * p.y * c as f32 + 0.4 * p.z).sin();
+            }
+        };
+        let field = FieldBuilder::new(Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0)), [15; 3]).build(
+            |p| if p.y < 0.5 { 1.0 } else { 0.0 },
+            |_| Vec3::ONE,
+            Some((10, &feat)),
+        );
+        let cache = FeatureCache::build(&field).unwrap();
+        let mut rng = SplitMix64::new(9);
+        let unit = |r: usize| -> Vec<f32> { cache.row(r).iter().map(|v| v * cache.inv_norm[r]).collect() };
+        let strokes: Vec<Centroids> = [3usize, 10, 1]
+            .iter()
+            .map(|&k| Centroids {
+                dim: 10,
+                data: (0..k).flat_map(|_| unit(rng.below(cache.len()))).collect(),
+            })
+            .collect();
+        // Each stroke measures what its seed pass measures (a tight θ
+        // leaves many rows to the cheap bound, unmeasured).
+        let mut merged: Option<StrokeDistances> = None;
+        let mut all = Centroids { dim: 10, data: vec![] };
+        for c in &strokes {
+            let (_, d) = nnfm_seed_with_distances(&cache, c, 0.05, 0.5);
+            all.data.extend_from_slice(&c.data);
+            match &mut merged {
+                Some(m) => m.merge(&cache, d),
+                none => *none = Some(d),
+            }
+        }
+        let mut merged = merged.unwrap();
+        assert_eq!(merged.centres(), &all);
+        let set = CentreSet::new(all);
+        let rows: Vec<usize> = (0..cache.len()).collect();
+        let unknown = rows.iter().filter(|&&r| merged.d[r].is_nan()).count();
+        assert!(
+            unknown > 0 && unknown < rows.len(),
+            "{unknown} of {} rows unmeasured",
+            rows.len()
+        );
+        for (&r, d) in rows.iter().zip(merged.of_rows(&cache, &rows)) {
+            assert_eq!(d.to_bits(), set.min_distance(&cache, r).to_bits(), "row {r}");
         }
     }
 
