@@ -635,6 +635,23 @@ mod tests {
         }
     }
 
+    /// The 4-neighbour edges of a `w × h` grid, random capacities each way.
+    fn grid_edges(w: usize, h: usize, rng: &mut SplitMix64) -> Vec<(usize, usize, f32, f32)> {
+        let mut edges = vec![];
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if x + 1 < w {
+                    edges.push((i, i + 1, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
+                }
+                if y + 1 < h {
+                    edges.push((i, i + w, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
+                }
+            }
+        }
+        edges
+    }
+
     #[test]
     fn max_flow_matches_edmonds_karp_on_larger_grids() {
         // 2D grids with random terminal links and weights: many paths share
@@ -651,18 +668,7 @@ mod tests {
                     _ => (0.0, 0.0),
                 })
                 .collect();
-            let mut edges = vec![];
-            for y in 0..h {
-                for x in 0..w {
-                    let i = y * w + x;
-                    if x + 1 < w {
-                        edges.push((i, i + 1, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
-                    }
-                    if y + 1 < h {
-                        edges.push((i, i + w, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
-                    }
-                }
-            }
+            let edges = grid_edges(w, h, &mut rng);
             let mut g = graph(&term, &edges);
             let flow = g.maxflow();
             let reference = edmonds_karp(n, &term, &edges);
@@ -709,18 +715,7 @@ mod tests {
             let (w, h) = (3 + rng.below(8), 3 + rng.below(8));
             let n = w * h;
             let term: Vec<(f32, f32)> = (0..n).map(|_| term_of(&mut rng)).collect();
-            let mut edges = vec![];
-            for y in 0..h {
-                for x in 0..w {
-                    let i = y * w + x;
-                    if x + 1 < w {
-                        edges.push((i, i + 1, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
-                    }
-                    if y + 1 < h {
-                        edges.push((i, i + w, (rng.unit() * 3.0) as f32, (rng.unit() * 3.0) as f32));
-                    }
-                }
-            }
+            let edges = grid_edges(w, h, &mut rng);
             let mut g = graph(&term, &edges);
             g.maxflow();
             let before: Vec<bool> = (0..n).map(|i| g.is_source(i)).collect();
