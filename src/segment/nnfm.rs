@@ -213,6 +213,34 @@ fn lane_dots(block: &[f32], centre: &[f32]) -> [f32; LANES] {
     acc
 }
 
+/// Calls `f(k, dots)` with [`lane_dots`] of every centre, four centres per
+/// pass over `block`: each block value loaded once serves four products
+/// (the kernels were bound by those loads), and each lane still sums every
+/// centre's channels in order, so the products are bit for bit the same.
+#[inline]
+fn each_centre_dots(block: &[f32], centres: &Centroids, mut f: impl FnMut(usize, &[f32; LANES])) {
+    let k = centres.len();
+    let quads = k / 4;
+    for q in 0..quads {
+        let c = [0, 1, 2, 3].map(|j| centres.row(4 * q + j));
+        let mut acc = [[0.0f32; LANES]; 4];
+        for (ch, b) in block.chunks_exact(LANES).enumerate().take(centres.dim) {
+            let w = [c[0][ch], c[1][ch], c[2][ch], c[3][ch]];
+            for j in 0..4 {
+                for l in 0..LANES {
+                    acc[j][l] += b[l] * w[j];
+                }
+            }
+        }
+        for (j, a) in acc.iter().enumerate() {
+            f(4 * q + j, a);
+        }
+    }
+    for j in 4 * quads..k {
+        f(j, &lane_dots(block, centres.row(j)));
+    }
+}
+
 /// The exact distances min_k ‖φ̂ − c_k‖², as ‖φ̂‖² − 2 φ̂·c_k + ‖c_k‖²,
 /// bit for bit those of [`CentreSet::min_distance`].
 struct Exact<'a> {
@@ -253,12 +281,11 @@ impl Exact<'_> {
             }
         }
         let mut best = [f32::INFINITY; LANES];
-        for k in 0..self.centres.len() {
-            let acc = lane_dots(block, self.centres.row(k));
+        each_centre_dots(block, self.centres, |k, acc| {
             for l in 0..LANES {
                 best[l] = best[l].min(self.distance(acc[l], self.cache.inv_norm[r0 + l], k));
             }
-        }
+        });
         best
     }
 }
@@ -326,14 +353,13 @@ impl CentreSet {
                         }
                     }
                     let mut best = [f32::INFINITY; LANES];
-                    for k in 0..self.centres.len() {
-                        let acc = lane_dots(&block, self.centres.row(k));
+                    each_centre_dots(&block, &self.centres, |k, acc| {
                         for (l, &r) in group.iter().enumerate() {
                             let inv = cache.inv_norm[r];
                             let self_n = if inv > 0.0 { 1.0 } else { 0.0 };
                             best[l] = best[l].min((self_n - 2.0 * acc[l] * inv + self.norms[k]).max(0.0));
                         }
-                    }
+                    });
                     out.extend_from_slice(&best);
                 }
                 out
