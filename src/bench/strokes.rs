@@ -183,3 +183,37 @@ pub fn field_stroke_table(r: &FieldStrokeReport) -> Table {
     }
     t
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn replayed_strokes_report_the_masks_the_builder_makes() {
+        let demo = crate::demo::build("tabletop", 48, 0).unwrap();
+        let strokes: Vec<Stroke> = ["pot", "mug"]
+            .iter()
+            .map(|o| crate::eval::protocol::demo_stroke(&demo, o).unwrap())
+            .collect();
+        let field = Arc::new(demo.field);
+        let p = SegmentParams::default();
+        let r = bench_field_strokes(field.clone(), &strokes, &p, 2).unwrap();
+        assert_eq!(r.strokes.len(), 2);
+        assert_eq!(r.cached_voxels, field.feature_cache().unwrap().len());
+        // Each object's mask as the builder makes it on its own.
+        let scene = Scene::single(field.clone());
+        let cache = field.feature_cache().unwrap();
+        for (s, f) in strokes.iter().zip(&r.strokes) {
+            let mut b = MaskBuilder::new(Bitmap::new(field.res()));
+            b.stroke(&scene, &cache, s, s.polarity, &p).unwrap();
+            assert!(b.mask.count() > 0);
+            assert_eq!(f.mask_voxels, b.mask.count(), "{}", s.object);
+            assert_eq!((f.runs, f.object.as_str()), (2, s.object.as_str()));
+            assert!(f.wall_ms >= f.stages.stroke_features_ms && f.stages.region_voxels > 0);
+        }
+        assert!(r.worst_ms() >= r.strokes[0].wall_ms);
+        // Nothing to replay, or no runs: an error, not a panic.
+        assert!(bench_field_strokes(field.clone(), &[], &p, 2).is_err());
+        assert!(bench_field_strokes(field, &strokes, &p, 0).is_err());
+    }
+}
