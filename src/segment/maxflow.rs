@@ -236,7 +236,7 @@ impl Graph {
             let to_sink = tr < 0.0;
             if parent == NONE || sink != to_sink {
                 self.nodes[i as usize].sink = to_sink;
-                self.leave_tree(i, parent != NONE);
+                self.join_tree(i, parent != NONE);
             }
             let n = &mut self.nodes[i as usize];
             n.parent = TERMINAL;
@@ -250,7 +250,7 @@ impl Graph {
     /// (`was_in`) or from no tree: its children in the old tree become
     /// orphans, and the neighbours in the other tree it can now reach
     /// across become active.
-    fn leave_tree(&mut self, i: u32, was_in: bool) {
+    fn join_tree(&mut self, i: u32, was_in: bool) {
         let now_sink = self.nodes[i as usize].sink;
         let mut a = self.nodes[i as usize].first;
         while a != NONE {

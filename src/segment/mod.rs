@@ -451,13 +451,12 @@ fn voxel_colours(field: Option<&Field>, cache: &FeatureCache, voxels: &[u32]) ->
 /// subtraction.
 pub struct MaskBuilder {
     pub mask: Bitmap,
-    /// Centres of the positive strokes so far, concatenated.
-    positive: Centroids,
     /// Voxels under the positive strokes so far, ascending.
     positive_anchors: Vec<u32>,
-    /// Distances to the positive strokes' centres, as far as measured: a
-    /// negative stroke's cut needs them over the whole mask.
-    positive_distances: Option<nnfm::StrokeDistances>,
+    /// The positive strokes' centres so far, concatenated, with the
+    /// distances to them as far as measured: a negative stroke's cut needs
+    /// them over the whole mask.
+    positive: Option<nnfm::StrokeDistances>,
     negatives: Negatives,
 }
 
@@ -465,9 +464,8 @@ impl MaskBuilder {
     pub fn new(mask: Bitmap) -> Self {
         MaskBuilder {
             mask,
-            positive: Centroids { dim: 0, data: vec![] },
             positive_anchors: vec![],
-            positive_distances: None,
+            positive: None,
             negatives: Negatives::default(),
         }
     }
@@ -492,12 +490,10 @@ impl MaskBuilder {
         let (s, mut t) = segment_stroke(scene, cache, stroke, known, p)?;
         match polarity {
             Polarity::Positive => {
-                self.positive.dim = s.centres.dim;
-                self.positive.data.extend_from_slice(&s.centres.data);
                 self.positive_anchors.extend_from_slice(&s.anchors);
                 self.positive_anchors.sort_unstable();
                 self.positive_anchors.dedup();
-                match &mut self.positive_distances {
+                match &mut self.positive {
                     Some(d) => d.merge(cache, s.dist),
                     none => *none = Some(s.dist),
                 }
@@ -520,11 +516,11 @@ impl MaskBuilder {
                     .copied()
                     .filter(|&a| s.region.get(a as usize))
                     .collect();
-                self.negatives.add(&s.centres, &touched);
+                self.negatives.add(s.dist.centres(), &touched);
                 let field = anchor::layer_of(scene, cache).map(|l| &*l.field);
                 let cuts = p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0) && p.cut.rounds > 0;
                 if !cuts || !self.cut_out(cache, field, &s, p)? {
-                    self.subtract_competing(cache, &s.region, s.centres, p)?;
+                    self.subtract_competing(cache, &s.region, s.dist.centres().clone(), p)?;
                 }
                 t.cut_ms += ms_since(t0);
             }
@@ -535,8 +531,8 @@ impl MaskBuilder {
     /// The object's model: the positive strokes' centres, or (for a mask
     /// made elsewhere) centres of the mask outside `region`.
     fn object_centres(&self, cache: &FeatureCache, region: &Bitmap, p: &SegmentParams) -> Result<Centroids> {
-        if !self.positive.is_empty() {
-            return Ok(self.positive.clone());
+        if let Some(d) = self.positive.as_ref().filter(|d| !d.centres().is_empty()) {
+            return Ok(d.centres().clone());
         }
         let mut rest = self.mask.clone();
         rest.subtract(region)?;
@@ -567,8 +563,8 @@ impl MaskBuilder {
         let colours = voxel_colours(field, cache, &domain);
         let hard = anchor::near_anchors(&self.mask, &self.positive_anchors);
         let rows = cut::rows_of(cache, &domain);
-        let object_distance = match &mut self.positive_distances {
-            Some(d) if !self.positive.is_empty() => d.of_rows(cache, &rows),
+        let object_distance = match &mut self.positive {
+            Some(d) if !d.centres().is_empty() => d.of_rows(cache, &rows),
             _ => nnfm::CentreSet::new(object).min_distances(cache, &rows),
         };
         let input = cut::CutInput {
@@ -693,9 +689,8 @@ pub fn region_from_stroke(
 /// What one stroke selected.
 struct StrokeRegion {
     region: Bitmap,
-    /// The stroke's K-means centres.
-    centres: Centroids,
-    /// Its NNFM distances, as far as measured.
+    /// The stroke's K-means centres and its NNFM distances, as far as
+    /// measured.
     dist: nnfm::StrokeDistances,
     /// The voxels under the stroke (its surface), ascending.
     anchors: Vec<u32>,
@@ -732,15 +727,7 @@ fn segment_stroke(
         p,
         &mut t,
     )?;
-    Ok((
-        StrokeRegion {
-            region,
-            centres: dist.centres().clone(),
-            dist,
-            anchors,
-        },
-        t,
-    ))
+    Ok((StrokeRegion { region, dist, anchors }, t))
 }
 
 /// Applies a stroke's region to an object mask: union for positive strokes,

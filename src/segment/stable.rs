@@ -22,7 +22,8 @@
 //!   fern: 3–4 % per 0.1 from θ up to the flood into the planter at 1.4),
 //!   and the seeds are kept as they are.
 //!
-//! d is computed lazily, only for voxels the flood touches.
+//! d comes from the stroke's NNFM pass ([`StrokeDistances`]), which measured
+//! most voxels; the others are measured when the flood first touches them.
 
 use super::grow::{GrowParams, Offsets};
 use super::nnfm::StrokeDistances;
