@@ -655,3 +655,42 @@ fn a_negative_stroke_removes_what_it_touched_even_when_it_looks_like_the_object(
     b.stroke(&scene, &cache, &neg, Polarity::Negative, &no_cut).unwrap();
     assert!(b.mask == both || !b.mask.any(), "{}", b.mask.count());
 }
+
+#[test]
+fn strokes_segmented_on_the_coarse_grid_give_the_fine_answer_on_block_aligned_objects() {
+    // The touching red and blue boxes of the test above; their colour edge
+    // falls between 2×2×2 blocks (x index 11 | 12), and a block at a box
+    // face maps back to its solid voxels only. Segmenting on the coarse
+    // copy and mapping back must give the fine voxels exactly, through a
+    // positive stroke, a negative one and a positive one again.
+    let f = Arc::new(FieldBuilder::new(unit_box(), [24; 3]).build(
+        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
+        |p| if p.x < 0.0 { Vec3::X } else { Vec3::Z },
+        Some((3, &|_p: Vec3, out: &mut [f32]| out.copy_from_slice(&[3.0, 1.0, 0.5]))),
+    ));
+    let cache = f.feature_cache().unwrap();
+    let scene = Scene::single(f.clone());
+    let g = f.geom();
+    let solid = |v: usize| cache.index.slot(v).is_some();
+    let left = Bitmap::from_fn(g.res, |v| g.point_of(v).x < 0.0 && solid(v));
+    let both = Bitmap::from_fn(g.res, solid);
+    let params = SegmentParams {
+        coarse: true,
+        ..Default::default()
+    };
+    let pos = stroke_on(&f, Vec3::new(-0.3, 0.2, 0.6), "left", Polarity::Positive);
+    let neg = stroke_on(&f, Vec3::new(0.3, 0.2, 0.6), "left", Polarity::Negative);
+    let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(g.res));
+    b.stroke(&scene, &cache, &pos, Polarity::Positive, &params).unwrap();
+    assert_eq!(b.mask, both);
+    b.stroke(&scene, &cache, &neg, Polarity::Negative, &params).unwrap();
+    assert_eq!(b.mask, left);
+    b.stroke(&scene, &cache, &pos, Polarity::Positive, &params).unwrap();
+    assert_eq!(b.mask, left, "the negative stroke is remembered");
+    // A mask changed behind the builder's back (another edit) is coarsened
+    // again before the next stroke: the right box, set by hand, stays
+    // since the positive stroke only adds.
+    b.mask = both.clone();
+    b.stroke(&scene, &cache, &pos, Polarity::Positive, &params).unwrap();
+    assert_eq!(b.mask, both);
+}

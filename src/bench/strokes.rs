@@ -41,6 +41,8 @@ pub struct FieldStrokeReport {
     pub cached_voxels: usize,
     pub channels: usize,
     pub cache_ms: f64,
+    /// Making the cache's coarse copy (0 when not asked for).
+    pub coarse_ms: f64,
     pub macro_ms: f64,
     pub strokes: Vec<StrokeFigures>,
     pub peak_rss: Option<u64>,
@@ -66,6 +68,9 @@ pub fn bench_field_strokes(
     let load_average = load_average();
     let (cache, cache_ms) = time_ms(|| field.feature_cache());
     let cache = cache?;
+    // The coarse copy is made once per field too (the editor makes it
+    // when it opens one); 0 when the pipeline does not use it.
+    let (_, coarse_ms) = time_ms(|| p.coarse.then(|| cache.coarse().map(|c| c.len())));
     let (_, macro_ms) = time_ms(|| field.macro_grid().occupied_fraction());
     let scene = Scene::single(field.clone());
     // runs[stroke]: one per repeat.
@@ -107,6 +112,7 @@ pub fn bench_field_strokes(
         cached_voxels: cache.len(),
         channels: cache.channels,
         cache_ms,
+        coarse_ms,
         macro_ms,
         strokes,
         peak_rss: peak_rss_bytes(),

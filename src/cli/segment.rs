@@ -85,6 +85,11 @@ pub struct ParamArgs {
     /// balance between object and background [default: 1].
     #[arg(long)]
     pub cut_colour_margin: Option<f32>,
+    /// Segment on the field's grid coarsened 2× (an eighth of the voxels)
+    /// and map the mask back to the fine grid: `true` or `false`
+    /// [default: false].
+    #[arg(long)]
+    pub coarse: Option<bool>,
 }
 
 pub fn parse_growth(s: &str) -> Result<Growth, String> {
@@ -113,6 +118,7 @@ impl ParamArgs {
         p.cut.background_min = self.cut_background_min.unwrap_or(p.cut.background_min);
         p.kmeans_seed = self.kmeans_seed.unwrap_or(p.kmeans_seed);
         p.cut.colour_margin = self.cut_colour_margin.unwrap_or(p.cut.colour_margin);
+        p.coarse = self.coarse.unwrap_or(p.coarse);
         let g = &mut p.grow;
         g.sigma_f = self.sigma_f.unwrap_or(g.sigma_f);
         g.sigma_s = self.sigma_s.unwrap_or(g.sigma_s);

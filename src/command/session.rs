@@ -401,7 +401,13 @@ impl Session {
             None
         } else {
             self.progress.set("per-voxel features", 0, 0);
-            Some(f.field.feature_cache()?)
+            let cache = f.field.feature_cache()?;
+            if params.coarse {
+                // Made once per field, like the cache itself.
+                self.progress.set("coarse per-voxel features", 0, 0);
+                cache.coarse();
+            }
+            Some(cache)
         };
         // Stroke features come from the field as it stands in the world.
         let scene = Scene::new(vec![Layer {

@@ -32,6 +32,13 @@ pub struct FeatureCache {
     /// ([`super::Sampler::diffuse_color`]): the graph cut's colour terms
     /// read it for every voxel it labels, on every stroke.
     pub colours: Vec<glam::Vec3>,
+    /// Edge length of the voxels whose σ is stored (the smallest grid
+    /// spacing): the solidity floor of segmentation depends on it. A
+    /// [coarse copy](Self::coarse) keeps its fine grid's, as its σ is the
+    /// largest fine σ of its block.
+    pub voxel_size: f32,
+    /// The copy on a grid twice as coarse, made when first asked for.
+    coarse: std::sync::OnceLock<Option<Box<FeatureCache>>>,
 }
 
 /// Segmenting needs semantic features: the check shared by the cache and
@@ -74,8 +81,33 @@ impl FeatureCache {
                     *c = s.diffuse_color(p);
                 }
             });
+        Ok(Self::from_parts(
+            geom,
+            channels,
+            geom.spacing().min_element(),
+            voxels,
+            index,
+            sigma,
+            feats,
+            colours,
+        ))
+    }
+
+    /// A cache of the given rows (`voxels` ascending and set in `index`);
+    /// the feature norms are computed here.
+    #[allow(clippy::too_many_arguments)]
+    pub fn from_parts(
+        geom: GridGeom,
+        channels: usize,
+        voxel_size: f32,
+        voxels: Vec<u32>,
+        index: RankIndex,
+        sigma: Vec<f32>,
+        feats: Vec<f32>,
+        colours: Vec<glam::Vec3>,
+    ) -> Self {
         let inv_norm = feats
-            .par_chunks(channels)
+            .par_chunks(channels.max(1))
             .map(|r| {
                 let n = r.iter().map(|x| x * x).sum::<f32>().sqrt();
                 if n > 1e-12 {
@@ -85,7 +117,7 @@ impl FeatureCache {
                 }
             })
             .collect();
-        Ok(FeatureCache {
+        FeatureCache {
             geom,
             channels,
             voxels,
@@ -94,7 +126,18 @@ impl FeatureCache {
             feats,
             inv_norm,
             colours,
-        })
+            voxel_size,
+            coarse: std::sync::OnceLock::new(),
+        }
+    }
+
+    /// The copy of this cache on a grid twice as coarse
+    /// ([`super::coarse`]), made on first use and kept; `None` when the
+    /// grid is too small to halve.
+    pub fn coarse(&self) -> Option<&FeatureCache> {
+        self.coarse
+            .get_or_init(|| super::coarse::build(self).map(Box::new))
+            .as_deref()
     }
     pub fn len(&self) -> usize {
         self.voxels.len()

@@ -5,6 +5,7 @@
 pub mod bake;
 pub mod bitmap;
 pub mod cache;
+pub mod coarse;
 pub mod geom;
 pub mod grid;
 pub mod io;

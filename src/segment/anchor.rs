@@ -15,10 +15,18 @@ use crate::field::{Bitmap, FeatureCache};
 use crate::render::{Layer, Scene};
 use glam::Vec3;
 
-/// Voxels (of `cache`'s grid) within this many voxels of a stroke's hit
-/// point start the search: the expected hit depth of a blurred surface
+/// Voxels (of the field's own grid) within this many voxels of a stroke's
+/// hit point start the search: the expected hit depth of a blurred surface
 /// lies a voxel or so in front of or behind its solid voxels.
 const ANCHOR_RADIUS: isize = 2;
+
+/// [`ANCHOR_RADIUS`] in voxels of `cache`'s grid: one on a coarse copy,
+/// whose voxels are twice as large (two would reach four fine voxels,
+/// into a touching neighbour).
+pub fn radius(cache: &FeatureCache) -> isize {
+    let ratio = cache.geom.spacing().min_element() / cache.voxel_size;
+    ((ANCHOR_RADIUS as f32 / ratio).round() as isize).max(1)
+}
 
 /// The voxels of `cache`'s grid at the world points `hits` (the stroke's
 /// surface), through the transform of the scene layer whose field owns
@@ -47,15 +55,16 @@ pub fn layer_of<'a>(scene: &'a Scene, cache: &FeatureCache) -> Option<&'a Layer>
         .find(|l| l.field.cached_features().is_some_and(|c| std::ptr::eq(&*c, cache)))
 }
 
-/// The seeds joined to an anchor: every seed within [`ANCHOR_RADIUS`] of an
-/// anchor, and every seed 26-connected to those through seeds. `None` when
-/// no seed is near an anchor (the caller keeps all seeds).
-pub fn joined_seeds(seed: &Bitmap, anchors: &[u32]) -> Option<Bitmap> {
+/// The seeds joined to an anchor: every seed within `radius` (see
+/// [`radius`]) of an anchor, and every seed 26-connected to those through
+/// seeds. `None` when no seed is near an anchor (the caller keeps all
+/// seeds).
+pub fn joined_seeds(seed: &Bitmap, anchors: &[u32], radius: isize) -> Option<Bitmap> {
     let res = seed.res();
     let mut joined = Bitmap::new(res);
     let mut stack: Vec<usize> = vec![];
     for &a in anchors {
-        for n in block(res, a as usize, ANCHOR_RADIUS) {
+        for n in block(res, a as usize, radius) {
             if seed.get(n) && !joined.get(n) {
                 joined.set(n, true);
                 stack.push(n);
@@ -77,12 +86,12 @@ pub fn joined_seeds(seed: &Bitmap, anchors: &[u32]) -> Option<Bitmap> {
     Some(joined)
 }
 
-/// The voxels of `bits` within [`ANCHOR_RADIUS`] of an anchor, ascending.
-pub fn near_anchors(bits: &Bitmap, anchors: &[u32]) -> Vec<u32> {
+/// The voxels of `bits` within `radius` of an anchor, ascending.
+pub fn near_anchors(bits: &Bitmap, anchors: &[u32], radius: isize) -> Vec<u32> {
     let res = bits.res();
     let mut out: Vec<u32> = anchors
         .iter()
-        .flat_map(|&a| block(res, a as usize, ANCHOR_RADIUS))
+        .flat_map(|&a| block(res, a as usize, radius))
         .filter(|&n| bits.get(n))
         .map(|n| n as u32)
         .collect();
@@ -120,16 +129,16 @@ mod tests {
         }
         // A diagonal step still joins (26-connectivity).
         seed.set(idx(4, 2, 2), true);
-        let joined = joined_seeds(&seed, &[idx(0, 1, 1) as u32]).unwrap();
+        let joined = joined_seeds(&seed, &[idx(0, 1, 1) as u32], ANCHOR_RADIUS).unwrap();
         assert_eq!(joined.count(), 5);
         assert!(joined.get(idx(4, 2, 2)) && !joined.get(idx(7, 1, 1)));
         // An anchor two voxels off the bar (a blurred hit depth) still finds it.
-        let joined = joined_seeds(&seed, &[idx(11, 3, 3) as u32]).unwrap();
+        let joined = joined_seeds(&seed, &[idx(11, 3, 3) as u32], ANCHOR_RADIUS).unwrap();
         assert_eq!(joined.count(), 5);
         assert!(joined.get(idx(7, 1, 1)) && !joined.get(idx(0, 1, 1)));
         // Far from every seed: nothing to anchor to.
         let mut lone = Bitmap::new(res);
         lone.set(idx(11, 0, 0), true);
-        assert!(joined_seeds(&lone, &[idx(0, 3, 3) as u32]).is_none());
+        assert!(joined_seeds(&lone, &[idx(0, 3, 3) as u32], ANCHOR_RADIUS).is_none());
     }
 }

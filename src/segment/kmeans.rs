@@ -69,14 +69,24 @@ impl CentreBlocks {
 
     /// The nearest centre to `p` and its squared distance (the first one
     /// on ties, as a scan in centre order).
+    #[cfg(test)]
     fn nearest(&self, p: &[f32]) -> (usize, f32) {
-        let mut best = (0, f32::INFINITY);
+        let (k, d, _) = self.nearest2(p);
+        (k, d)
+    }
+
+    /// [`Self::nearest`], and the squared distance to the second nearest
+    /// centre (infinite with one centre).
+    fn nearest2(&self, p: &[f32]) -> (usize, f32, f32) {
+        let mut best = (0, f32::INFINITY, f32::INFINITY);
         self.sums(
             p,
             |c, x| (c - x) * (c - x),
             |k, d| {
                 if d < best.1 {
-                    best = (k, d);
+                    best = (k, d, best.1);
+                } else if d < best.2 {
+                    best.2 = d;
                 }
             },
         );
@@ -143,16 +153,20 @@ pub fn kmeans(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize)
     }
     let kk = centres.len() / dim;
     let mut assign = vec![usize::MAX; n];
+    let mut bounds = vec![Bounds::UNKNOWN; n];
+    let mut shift = CentreShift::none(kk);
     for _ in 0..max_iters {
         let blocks = CentreBlocks::new(&centres, dim);
+        let half_gap = half_gaps(&centres, dim);
         // Each point's nearest centre on its own (the same sums as one
         // thread, so the result does not depend on the thread count).
         let changed = assign
             .par_iter_mut()
+            .zip(bounds.par_iter_mut())
             .with_min_len(MIN_TASK)
             .enumerate()
-            .map(|(i, a)| {
-                let (best, _) = blocks.nearest(row(i));
+            .map(|(i, (a, b))| {
+                let best = b.nearest(*a, row(i), &blocks, &centres, &half_gap, &shift);
                 let moved = *a != best;
                 *a = best;
                 moved
@@ -161,6 +175,7 @@ pub fn kmeans(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize)
         if !changed {
             break;
         }
+        let old = centres.clone();
         let mut sum = vec![0.0f64; kk * dim];
         let mut count = vec![0usize; kk];
         for i in 0..n {
@@ -178,8 +193,125 @@ pub fn kmeans(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize)
                 }
             }
         }
+        shift = CentreShift::between(&old, &centres, dim);
     }
     Centroids { dim, data: centres }
+}
+
+/// Hamerly's bounds on a point's distances (not squared): an upper bound
+/// on the distance to its assigned centre and a lower bound on the
+/// distance to every other centre. While the first stays below the second
+/// (and below half the gap from its centre to the nearest other one) the
+/// assignment cannot change and the point's K distances need not be
+/// summed; later Lloyd iterations skip most points that way. The test
+/// keeps a margin far above f32 rounding, so a point is skipped only when
+/// its centre is strictly the nearest, and the assignments and centres are
+/// those of plain Lloyd iterations to the bit (tested).
+#[derive(Clone, Copy)]
+struct Bounds {
+    upper: f32,
+    lower: f32,
+}
+
+/// Slack on the bounds' test (distances between unit-scale points).
+const BOUND_MARGIN: f32 = 1e-4;
+
+impl Bounds {
+    const UNKNOWN: Bounds = Bounds {
+        upper: f32::INFINITY,
+        lower: f32::NEG_INFINITY,
+    };
+
+    /// The nearest centre of `p` (assigned to `a` before the centres moved
+    /// by `shift`), updating the bounds.
+    fn nearest(
+        &mut self,
+        a: usize,
+        p: &[f32],
+        blocks: &CentreBlocks,
+        centres: &[f32],
+        half_gap: &[f32],
+        shift: &CentreShift,
+    ) -> usize {
+        if a != usize::MAX {
+            self.upper += shift.of[a];
+            self.lower -= shift.largest_but(a);
+            let bound = self.lower.max(half_gap[a]);
+            if self.upper + BOUND_MARGIN < bound {
+                return a;
+            }
+            // Tighten the upper bound to the exact distance and try again.
+            let dim = p.len();
+            self.upper = dist2(p, &centres[a * dim..(a + 1) * dim]).sqrt();
+            if self.upper + BOUND_MARGIN < bound {
+                return a;
+            }
+        }
+        let (best, d1, d2) = blocks.nearest2(p);
+        *self = Bounds {
+            upper: d1.sqrt(),
+            lower: d2.sqrt(),
+        };
+        best
+    }
+}
+
+/// How far each centre moved in the last update, and the two largest moves.
+struct CentreShift {
+    of: Vec<f32>,
+    /// The largest move and its centre, and the second largest.
+    top: (f32, usize, f32),
+}
+
+impl CentreShift {
+    fn none(k: usize) -> Self {
+        CentreShift {
+            of: vec![0.0; k],
+            top: (0.0, usize::MAX, 0.0),
+        }
+    }
+
+    fn between(old: &[f32], new: &[f32], dim: usize) -> Self {
+        let of: Vec<f32> = old
+            .chunks_exact(dim)
+            .zip(new.chunks_exact(dim))
+            .map(|(a, b)| dist2(a, b).sqrt())
+            .collect();
+        let mut top = (0.0, usize::MAX, 0.0);
+        for (c, &d) in of.iter().enumerate() {
+            if d > top.0 {
+                top = (d, c, top.0);
+            } else if d > top.2 {
+                top.2 = d;
+            }
+        }
+        CentreShift { of, top }
+    }
+
+    /// The largest move of a centre other than `a`.
+    fn largest_but(&self, a: usize) -> f32 {
+        if self.top.1 == a {
+            self.top.2
+        } else {
+            self.top.0
+        }
+    }
+}
+
+/// Half the distance from each centre to its nearest other centre: a point
+/// closer than that to its centre is nearest to it.
+fn half_gaps(centres: &[f32], dim: usize) -> Vec<f32> {
+    let k = centres.len() / dim.max(1);
+    (0..k)
+        .map(|a| {
+            let ca = &centres[a * dim..(a + 1) * dim];
+            let nearest = (0..k)
+                .filter(|&b| b != a)
+                .map(|b| dist2(ca, &centres[b * dim..(b + 1) * dim]))
+                .fold(f32::INFINITY, f32::min);
+            0.5 * nearest.sqrt()
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -193,6 +325,78 @@ mod tests {
             .enumerate()
             .map(|(k, r)| (k, dist2(r, p)))
             .fold((0, f32::INFINITY), |a, b| if b.1 < a.1 { b } else { a })
+    }
+
+    /// Plain Lloyd iterations from the same k-means++ seeding: every
+    /// point's distance to every centre in every iteration.
+    fn lloyd(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize) -> Centroids {
+        let seeded = kmeans(points, dim, k, seed, 0);
+        let mut centres = seeded.data;
+        let n = points.len() / dim;
+        let kk = centres.len() / dim;
+        let mut assign = vec![usize::MAX; n];
+        for _ in 0..max_iters {
+            let mut changed = false;
+            for (i, a) in assign.iter_mut().enumerate() {
+                let best = scan(&centres, dim, &points[i * dim..(i + 1) * dim]).0;
+                changed |= *a != best;
+                *a = best;
+            }
+            if !changed {
+                break;
+            }
+            let mut sum = vec![0.0f64; kk * dim];
+            let mut count = vec![0usize; kk];
+            for i in 0..n {
+                count[assign[i]] += 1;
+                for (s, &v) in sum[assign[i] * dim..(assign[i] + 1) * dim]
+                    .iter_mut()
+                    .zip(&points[i * dim..])
+                {
+                    *s += v as f64;
+                }
+            }
+            for c in (0..kk).filter(|&c| count[c] > 0) {
+                for j in 0..dim {
+                    centres[c * dim + j] = (sum[c * dim + j] / count[c] as f64) as f32;
+                }
+            }
+        }
+        Centroids { dim, data: centres }
+    }
+
+    #[test]
+    fn bounded_iterations_give_the_plain_lloyd_centres_to_the_bit() {
+        let mut rng = SplitMix64::new(11);
+        // Unit features in blobs that overlap (many points near the
+        // boundaries, where a wrong skip would show), and exact
+        // duplicates (ties).
+        for (n, dim, k, blobs) in [(3000, 64, 20, 12), (2000, 8, 10, 30), (500, 3, 7, 3), (300, 16, 1, 2)] {
+            let mut centre_of_blob = vec![];
+            for _ in 0..blobs {
+                centre_of_blob.push((0..dim).map(|_| rng.unit() as f32 - 0.5).collect::<Vec<f32>>());
+            }
+            let mut points = Vec::with_capacity(n * dim);
+            for i in 0..n {
+                if i % 10 == 9 {
+                    let copy = points[(i - 5) * dim..(i - 4) * dim].to_vec();
+                    points.extend(copy);
+                    continue;
+                }
+                let c = &centre_of_blob[i % blobs];
+                let mut p: Vec<f32> = c.iter().map(|&x| x + 0.6 * (rng.unit() as f32 - 0.5)).collect();
+                let norm = p.iter().map(|x| x * x).sum::<f32>().sqrt();
+                p.iter_mut().for_each(|x| *x /= norm);
+                points.extend(p);
+            }
+            for seed in 0..3 {
+                let got = kmeans(&points, dim, k, seed, 50);
+                let want = lloyd(&points, dim, k, seed, 50);
+                assert_eq!(got.data.len(), want.data.len());
+                let same = got.data.iter().zip(&want.data).all(|(a, b)| a.to_bits() == b.to_bits());
+                assert!(same, "n {n}, dim {dim}, k {k}, seed {seed}");
+            }
+        }
     }
 
     #[test]

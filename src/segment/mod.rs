@@ -75,6 +75,9 @@ pub struct SegmentParams {
     pub connected: bool,
     pub kmeans_seed: u64,
     pub kmeans_iters: usize,
+    /// Segment on the field's grid coarsened 2× ([`crate::field::coarse`]),
+    /// an eighth of the voxels, and map the mask back to the fine grid.
+    pub coarse: bool,
 }
 
 impl Default for SegmentParams {
@@ -97,6 +100,7 @@ impl Default for SegmentParams {
             connected: true,
             kmeans_seed: 0,
             kmeans_iters: 50,
+            coarse: false,
         }
     }
 }
@@ -111,6 +115,7 @@ impl SegmentParams {
             solid_alpha: 0.0,
             stroke_keep: 1.0,
             connected: false,
+            coarse: false,
             ..Default::default()
         }
     }
@@ -355,10 +360,10 @@ fn segment_anchored(
     let t0 = Instant::now();
     let floor = match p.grow.rule {
         GrowthRule::Paper => p.seed_floor,
-        _ => p.sigma_floor(cache.geom.spacing().min_element()),
+        _ => p.sigma_floor(cache.voxel_size),
     };
     let (mut region, mut dist) = nnfm::nnfm_seed_with_distances(cache, &centres, p.theta, floor);
-    if let Some(joined) = anchor::joined_seeds(&region, anchors) {
+    if let Some(joined) = anchor::joined_seeds(&region, anchors, anchor::radius(cache)) {
         region = joined;
     }
     t.nnfm_ms = ms_since(t0);
@@ -370,7 +375,7 @@ fn segment_anchored(
         t.grow_steps = 1;
         t.threshold = s.threshold;
         let t0 = Instant::now();
-        let hard = anchor::near_anchors(&region, anchors);
+        let hard = anchor::near_anchors(&region, anchors, anchor::radius(cache));
         let region = cut_region(cache, field, &mut dist, &s, &hard, anchors, negatives, p).unwrap_or(s.region);
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
@@ -422,7 +427,7 @@ fn cut_region(
         },
     };
     let cut = cut::refine(&input, &p.cut, p.kmeans_seed)?;
-    anchor::joined_seeds(&cut, anchors)
+    anchor::joined_seeds(&cut, anchors, anchor::radius(cache))
 }
 
 /// The diffuse colour (cached per field) of each of `voxels`, solid
@@ -458,6 +463,10 @@ pub struct MaskBuilder {
     /// them over the whole mask.
     positive: Option<nnfm::StrokeDistances>,
     negatives: Negatives,
+    /// With [`SegmentParams::coarse`]: the builder that works on the
+    /// cache's coarse copy, and the fine mask it last gave (a mask changed
+    /// since, by other edits, is coarsened again before the next stroke).
+    coarse: Option<Box<(MaskBuilder, Bitmap)>>,
 }
 
 impl MaskBuilder {
@@ -467,14 +476,69 @@ impl MaskBuilder {
             positive_anchors: vec![],
             positive: None,
             negatives: Negatives::default(),
+            coarse: None,
         }
     }
 
-    /// Segments `stroke` on `scene` and applies it with `polarity`.
+    /// Segments `stroke` on `scene` and applies it with `polarity`
+    /// (`cache`: the features of the field the stroke is drawn on).
     pub fn stroke(
         &mut self,
         scene: &Scene,
         cache: &FeatureCache,
+        stroke: &Stroke,
+        polarity: Polarity,
+        p: &SegmentParams,
+    ) -> Result<Timings> {
+        match p.coarse.then(|| cache.coarse()).flatten() {
+            Some(coarse) => self.stroke_coarse(scene, cache, coarse, stroke, polarity, p),
+            None => self.stroke_on(scene, cache, cache, stroke, polarity, p),
+        }
+    }
+
+    /// The stroke segmented on the coarse copy of `fine`, its mask mapped
+    /// back: every solid fine voxel of a selected coarse voxel.
+    fn stroke_coarse(
+        &mut self,
+        scene: &Scene,
+        fine: &FeatureCache,
+        coarse: &FeatureCache,
+        stroke: &Stroke,
+        polarity: Polarity,
+        p: &SegmentParams,
+    ) -> Result<Timings> {
+        ensure!(
+            self.mask.res() == fine.geom.res,
+            "the mask's grid {:?} is not the field's {:?}",
+            self.mask.res(),
+            fine.geom.res
+        );
+        let level = self.coarse.get_or_insert_with(|| {
+            Box::new((
+                MaskBuilder::new(crate::field::coarse::downsample(&self.mask)),
+                self.mask.clone(),
+            ))
+        });
+        if level.1 != self.mask {
+            level.0.mask = crate::field::coarse::downsample(&self.mask);
+        }
+        let t = level.0.stroke_on(scene, coarse, fine, stroke, polarity, p)?;
+        let t0 = Instant::now();
+        let floor = p.sigma_floor(fine.voxel_size);
+        self.mask = crate::field::coarse::upsample(fine, &level.0.mask, floor);
+        let mut t = t;
+        level.1 = self.mask.clone();
+        t.cut_ms += ms_since(t0);
+        Ok(t)
+    }
+
+    /// The stroke segmented on `cache`, the features of `owner` (the
+    /// field in `scene`) or their coarse copy.
+    fn stroke_on(
+        &mut self,
+        scene: &Scene,
+        cache: &FeatureCache,
+        owner: &FeatureCache,
         stroke: &Stroke,
         polarity: Polarity,
         p: &SegmentParams,
@@ -487,7 +551,7 @@ impl MaskBuilder {
         } else {
             &none
         };
-        let (s, mut t) = segment_stroke(scene, cache, stroke, known, p)?;
+        let (s, mut t) = segment_stroke(scene, cache, owner, stroke, known, p)?;
         match polarity {
             Polarity::Positive => {
                 self.positive_anchors.extend_from_slice(&s.anchors);
@@ -500,7 +564,7 @@ impl MaskBuilder {
                 self.mask.union_with(&s.region)?;
                 if p.grow.rule != GrowthRule::Paper {
                     // What no view saw inside the object moves with it.
-                    let floor = p.sigma_floor(cache.geom.spacing().min_element());
+                    let floor = p.sigma_floor(cache.voxel_size);
                     t.enclosed_voxels = enclosed::fill_enclosed_unseen(cache, &mut self.mask, floor);
                 }
             }
@@ -517,7 +581,7 @@ impl MaskBuilder {
                     .filter(|&a| s.region.get(a as usize))
                     .collect();
                 self.negatives.add(s.dist.centres(), &touched);
-                let field = anchor::layer_of(scene, cache).map(|l| &*l.field);
+                let field = anchor::layer_of(scene, owner).map(|l| &*l.field);
                 let cuts = p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0) && p.cut.rounds > 0;
                 if !cuts || !self.cut_out(cache, field, &s, p)? {
                     self.subtract_competing(cache, &s.region, s.dist.centres().clone(), p)?;
@@ -561,7 +625,7 @@ impl MaskBuilder {
             .map(|v| v as u32)
             .collect();
         let colours = voxel_colours(field, cache, &domain);
-        let hard = anchor::near_anchors(&self.mask, &self.positive_anchors);
+        let hard = anchor::near_anchors(&self.mask, &self.positive_anchors, anchor::radius(cache));
         let rows = cut::rows_of(cache, &domain);
         let object_distance = match &mut self.positive {
             Some(d) if !d.centres().is_empty() => d.of_rows(cache, &rows),
@@ -590,7 +654,7 @@ impl MaskBuilder {
             reach.intersect_with(&s.region)?;
         }
         self.mask.subtract(&reach)?;
-        if let Some(joined) = anchor::joined_seeds(&self.mask, &self.positive_anchors) {
+        if let Some(joined) = anchor::joined_seeds(&self.mask, &self.positive_anchors, anchor::radius(cache)) {
             self.mask = joined;
         }
         Ok(true)
@@ -667,7 +731,7 @@ pub fn mask_bound(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Opt
     if p.grow.rule == GrowthRule::Paper {
         return None;
     }
-    let floor = p.sigma_floor(cache.geom.spacing().min_element());
+    let floor = p.sigma_floor(cache.voxel_size);
     Some(Bound::new(
         mask_centres(cache, mask, p),
         p.grow.theta_grow.max(p.theta),
@@ -683,7 +747,7 @@ pub fn region_from_stroke(
     stroke: &Stroke,
     p: &SegmentParams,
 ) -> Result<(Bitmap, Timings)> {
-    segment_stroke(scene, cache, stroke, &Negatives::default(), p).map(|(s, t)| (s.region, t))
+    segment_stroke(scene, cache, cache, stroke, &Negatives::default(), p).map(|(s, t)| (s.region, t))
 }
 
 /// What one stroke selected.
@@ -698,9 +762,12 @@ struct StrokeRegion {
 
 /// [`region_from_stroke`] for an object with earlier `negatives`, also
 /// returning the stroke's centres and anchors.
+/// `owner` is the cache of the field in `scene` (where the stroke's
+/// surface is found), `cache` that cache or its coarse copy.
 fn segment_stroke(
     scene: &Scene,
     cache: &FeatureCache,
+    owner: &FeatureCache,
     stroke: &Stroke,
     negatives: &Negatives,
     p: &SegmentParams,
@@ -710,13 +777,16 @@ fn segment_stroke(
     let t0 = Instant::now();
     t.stroke_pixels = stroke_pixels(stroke)?.len();
     let samples = stroke_samples(scene, stroke, p.min_stroke_opacity)?;
-    let anchors = if p.connected {
-        anchor::anchor_voxels(scene, cache, &samples.hits)
+    let mut anchors = if p.connected {
+        anchor::anchor_voxels(scene, owner, &samples.hits)
     } else {
         vec![]
     };
+    if !std::ptr::eq(cache, owner) {
+        anchors = crate::field::coarse::parents(owner.geom.res, &anchors);
+    }
     t.stroke_features_ms = ms_since(t0);
-    let field = anchor::layer_of(scene, cache).map(|l| &*l.field);
+    let field = anchor::layer_of(scene, owner).map(|l| &*l.field);
     let (region, dist) = segment_anchored(
         cache,
         field,
