@@ -681,6 +681,7 @@ fn undo_keeps_a_bounded_history_and_frees_deleted_fields() {
         connected: None,
         cut_rounds: None,
         cut_lambda: None,
+        coarse: None,
     };
     s.apply(&k(4)).unwrap();
     s.apply(&k(5)).unwrap();

@@ -170,6 +170,7 @@ fn keyboard_growth_and_a_committed_drag_go_through_commands() {
         connected: None,
         cut_rounds: None,
         cut_lambda: None,
+        coarse: None,
     });
     paint(&mut app, "mug");
     let (name, before, _) = objects(&mut app)[0].clone();

@@ -676,8 +676,10 @@ fn strokes_segmented_on_the_coarse_grid_give_the_fine_answer_on_block_aligned_ob
     let both = Bitmap::from_fn(g.res, solid);
     let params = SegmentParams {
         coarse: true,
+        coarse_min_voxels: 0,
         ..Default::default()
     };
+    assert!(cache.len() < SegmentParams::default().coarse_min_voxels);
     let pos = stroke_on(&f, Vec3::new(-0.3, 0.2, 0.6), "left", Polarity::Positive);
     let neg = stroke_on(&f, Vec3::new(0.3, 0.2, 0.6), "left", Polarity::Negative);
     let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(g.res));

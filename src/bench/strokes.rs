@@ -70,7 +70,7 @@ pub fn bench_field_strokes(
     let cache = cache?;
     // The coarse copy is made once per field too (the editor makes it
     // when it opens one); 0 when the pipeline does not use it.
-    let (_, coarse_ms) = time_ms(|| p.coarse.then(|| cache.coarse().map(|c| c.len())));
+    let (_, coarse_ms) = time_ms(|| crate::segment::coarse_cache(&cache, p).map(|c| c.len()));
     let (_, macro_ms) = time_ms(|| field.macro_grid().occupied_fraction());
     let scene = Scene::single(field.clone());
     // runs[stroke]: one per repeat.

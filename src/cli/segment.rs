@@ -86,8 +86,8 @@ pub struct ParamArgs {
     #[arg(long)]
     pub cut_colour_margin: Option<f32>,
     /// Segment on the field's grid coarsened 2× (an eighth of the voxels)
-    /// and map the mask back to the fine grid: `true` or `false`
-    /// [default: false].
+    /// and map the mask back to the fine grid, on fields with at least
+    /// 800k occupied voxels: `true` or `false` [default: true].
     #[arg(long)]
     pub coarse: Option<bool>,
 }

@@ -296,6 +296,10 @@ pub enum Edit {
         /// small islands).
         #[serde(default)]
         cut_lambda: Option<f32>,
+        /// Segment on the field's grid coarsened 2× (an eighth of the
+        /// voxels: several times faster strokes on large fields).
+        #[serde(default)]
+        coarse: Option<bool>,
     },
     /// A brush stroke for `object` (created on first positive stroke) on
     /// `field` (default: the object's field, else the first field).
@@ -456,6 +460,7 @@ impl Edit {
             connected,
             cut_rounds,
             cut_lambda,
+            coarse,
         } = self
         {
             if let Some(r) = rule {
@@ -472,6 +477,7 @@ impl Edit {
             p.growth = growth.unwrap_or(p.growth);
             p.cut.rounds = cut_rounds.unwrap_or(p.cut.rounds);
             p.cut.lambda = cut_lambda.unwrap_or(p.cut.lambda);
+            p.coarse = coarse.unwrap_or(p.coarse);
         }
         p.validate()?;
         Ok(p)

@@ -402,11 +402,9 @@ impl Session {
         } else {
             self.progress.set("per-voxel features", 0, 0);
             let cache = f.field.feature_cache()?;
-            if params.coarse {
-                // Made once per field, like the cache itself.
-                self.progress.set("coarse per-voxel features", 0, 0);
-                cache.coarse();
-            }
+            // Made once per field, like the cache itself.
+            self.progress.set("coarse per-voxel features", 0, 0);
+            crate::segment::coarse_cache(&cache, params);
             Some(cache)
         };
         // Stroke features come from the field as it stands in the world.

@@ -551,6 +551,10 @@ fn tools_panel(
         .checkbox(&mut p.connected, "only what the stroke touches")
         .on_hover_text("Keep the matches joined to the stroked surface; off: every look-alike in the field")
         .changed();
+    commit |= ui
+        .checkbox(&mut p.coarse, "fast: segment on a 2× coarser grid")
+        .on_hover_text("The same pipeline over an eighth of the voxels, the mask mapped back to the field's grid: several times faster strokes on large fields")
+        .changed();
     ui.checkbox(&mut state.live, "live: redo the last stroke with new values");
     if let Some(r) = rule {
         // A rule change resets the sliders to that rule's defaults.
@@ -572,6 +576,7 @@ fn tools_panel(
             connected: Some(p.connected),
             cut_rounds: Some(p.cut.rounds),
             cut_lambda: Some(p.cut.lambda),
+            coarse: Some(p.coarse),
         };
         // Live re-segmentation: take back the last stroke, change the
         // parameters, stroke again (all through the session, so undo works).
