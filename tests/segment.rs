@@ -607,6 +607,36 @@ fn a_negative_stroke_removes_its_neighbour_not_the_object_it_resembles() {
     assert!(b.mask.count() < left.count() / 10, "{}", b.mask.count());
 }
 
+/// Two touching boxes with the same features, red on the left (x < 0) and
+/// blue on the right, their solid voxels (both) and the left box's.
+struct TwoBoxes {
+    field: Arc<isrf::field::Field>,
+    cache: Arc<isrf::field::FeatureCache>,
+    scene: Scene,
+    left: Bitmap,
+    both: Bitmap,
+}
+
+fn red_and_blue_boxes() -> TwoBoxes {
+    let f = Arc::new(FieldBuilder::new(unit_box(), [24; 3]).build(
+        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
+        |p| if p.x < 0.0 { Vec3::X } else { Vec3::Z },
+        Some((3, &|_p: Vec3, out: &mut [f32]| out.copy_from_slice(&[3.0, 1.0, 0.5]))),
+    ));
+    let cache = f.feature_cache().unwrap();
+    let g = f.geom();
+    let solid = |v: usize| cache.index.slot(v).is_some();
+    let left = Bitmap::from_fn(g.res, |v| g.point_of(v).x < 0.0 && solid(v));
+    let both = Bitmap::from_fn(g.res, solid);
+    TwoBoxes {
+        scene: Scene::single(f.clone()),
+        field: f,
+        cache,
+        left,
+        both,
+    }
+}
+
 #[test]
 fn a_negative_stroke_removes_what_it_touched_even_when_it_looks_like_the_object() {
     // Two touching boxes with the same features, red on the left and blue
@@ -614,17 +644,14 @@ fn a_negative_stroke_removes_what_it_touched_even_when_it_looks_like_the_object(
     // on the right one has no features of its own to compete with. What it
     // touched is background all the same; the cut then follows the colour
     // edge to take the whole right box back, and keeps the left one.
-    let f = Arc::new(FieldBuilder::new(unit_box(), [24; 3]).build(
-        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
-        |p| if p.x < 0.0 { Vec3::X } else { Vec3::Z },
-        Some((3, &|_p: Vec3, out: &mut [f32]| out.copy_from_slice(&[3.0, 1.0, 0.5]))),
-    ));
-    let cache = f.feature_cache().unwrap();
-    let scene = Scene::single(f.clone());
+    let TwoBoxes {
+        field: f,
+        cache,
+        scene,
+        left,
+        both,
+    } = red_and_blue_boxes();
     let g = f.geom();
-    let solid = |v: usize| cache.index.slot(v).is_some();
-    let left = Bitmap::from_fn(g.res, |v| g.point_of(v).x < 0.0 && solid(v));
-    let both = Bitmap::from_fn(g.res, solid);
     let params = SegmentParams::default();
     let pos = stroke_on(&f, Vec3::new(-0.3, 0.2, 0.6), "left", Polarity::Positive);
     let neg = stroke_on(&f, Vec3::new(0.3, 0.2, 0.6), "left", Polarity::Negative);
@@ -663,17 +690,14 @@ fn strokes_segmented_on_the_coarse_grid_give_the_fine_answer_on_block_aligned_ob
     // face maps back to its solid voxels only. Segmenting on the coarse
     // copy and mapping back must give the fine voxels exactly, through a
     // positive stroke, a negative one and a positive one again.
-    let f = Arc::new(FieldBuilder::new(unit_box(), [24; 3]).build(
-        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
-        |p| if p.x < 0.0 { Vec3::X } else { Vec3::Z },
-        Some((3, &|_p: Vec3, out: &mut [f32]| out.copy_from_slice(&[3.0, 1.0, 0.5]))),
-    ));
-    let cache = f.feature_cache().unwrap();
-    let scene = Scene::single(f.clone());
+    let TwoBoxes {
+        field: f,
+        cache,
+        scene,
+        left,
+        both,
+    } = red_and_blue_boxes();
     let g = f.geom();
-    let solid = |v: usize| cache.index.slot(v).is_some();
-    let left = Bitmap::from_fn(g.res, |v| g.point_of(v).x < 0.0 && solid(v));
-    let both = Bitmap::from_fn(g.res, solid);
     let params = SegmentParams {
         coarse: true,
         coarse_min_voxels: 0,
