@@ -37,7 +37,7 @@
 //! whatever λ is. Each round re-fits the background centres to the new
 //! background; the object is then what stays joined to the stroke.
 
-use super::kmeans::{kmeans, Centroids};
+use super::kmeans::{kmeans, kmeans_from, Centroids};
 use super::maxflow::{Graph, HARD};
 use super::nnfm::CentreSet;
 use crate::field::{Bitmap, FeatureCache};
@@ -129,15 +129,20 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
     // A stroke covers a few hundred voxels of one or two materials.
     let flags = |set: &[u32]| -> Vec<bool> { input.domain.iter().map(|v| set.binary_search(v).is_ok()).collect() };
     let (under, under_negative) = (flags(input.hard), flags(input.background_hard));
-    let col_obj = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, n);
+    let (col_obj, _) = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, None);
     let edges = neighbour_edges(cache, input.domain, &rows, input.colours, p);
     let mut region: Vec<bool> = input.domain.iter().map(|&v| input.region.get(v as usize)).collect();
     let mut changed = false;
     let mut graph: Option<Graph> = None;
+    // The background models of the last round: a later round's background
+    // differs by what the cut moved, so its K-means starts from them (as
+    // GrabCut re-estimates its colour models) rather than from scratch.
+    let (mut last_fit, mut last_colours): (Option<Centroids>, Option<Centroids>) = (None, None);
     for round in 0..p.rounds {
         let seed = kmeans_seed + round as u64;
         let outside: Vec<bool> = (0..n).map(|i| (!region[i] && unlike[i]) || under_negative[i]).collect();
-        let fitted = background_centres(cache, &rows, &outside, p.background_k, seed);
+        let fitted = background_centres(cache, &rows, &outside, p.background_k, seed, last_fit.as_ref());
+        last_fit = fitted.clone();
         // No background left to fit: nothing to cut against (after a round
         // that changed the region, keep that round's result).
         let Some(background) = with_known(fitted, input.known_background) else {
@@ -148,7 +153,9 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64) -> Option<Bitma
         };
         let bg = CentreSet::new(background);
         let d_bg = bg.min_distances(cache, &rows);
-        let col_bg = colour_term(input.colours, &outside, p.background_k, seed, p.colour_unary, n);
+        let warm = last_colours.take();
+        let (col_bg, fitted_colours) = colour_term(input.colours, &outside, p.background_k, seed, p.colour_unary, warm);
+        last_colours = fitted_colours;
         // The first round builds the graph; later ones change only the
         // region terms and resume from the last round's flow (voxels under
         // the strokes stay tied to their side).
@@ -213,28 +220,51 @@ fn flagged<T: Copy>(items: &[T], flags: &[bool]) -> Vec<T> {
     items.iter().zip(flags).filter(|(_, &f)| f).map(|(&x, _)| x).collect()
 }
 
-/// K-means centres (at most `k`) of the flagged colours (a strided sample
-/// of at most 20k); `None` when none is flagged.
-fn colour_centres(colours: &[Vec3], flags: &[bool], k: usize, seed: u64) -> Option<Centroids> {
+/// K-means centres (at most `k`, or started from `warm`) of the flagged
+/// colours (a strided sample of at most 20k); `None` when none is flagged.
+fn colour_centres(
+    colours: &[Vec3],
+    flags: &[bool],
+    k: usize,
+    seed: u64,
+    warm: Option<&Centroids>,
+) -> Option<Centroids> {
     let picked = flagged(colours, flags);
     if picked.is_empty() {
         return None;
     }
     let stride = picked.len().div_ceil(super::MAX_CLUSTERED_ROWS).max(1);
     let flat: Vec<f32> = picked.iter().step_by(stride).flat_map(|c| c.to_array()).collect();
-    Some(kmeans(&flat, 3, k, seed, 30))
+    Some(fit(&flat, 3, k, seed, warm))
+}
+
+/// K-means of `points` (`dim` wide), 30 iterations at most, from `warm`
+/// when given, else k-means++ with `seed`.
+fn fit(points: &[f32], dim: usize, k: usize, seed: u64, warm: Option<&Centroids>) -> Centroids {
+    match warm.filter(|w| w.dim == dim && !w.is_empty()) {
+        Some(w) => kmeans_from(points, w, 30),
+        None => kmeans(points, dim, k, seed, 30),
+    }
 }
 
 /// γ times each colour's squared distance to the nearest of at most `k`
-/// K-means centres of the flagged colours; `n` zeros when γ is 0, there are
-/// no colours or nothing is flagged.
-fn colour_term(colours: &[Vec3], flags: &[bool], k: usize, seed: u64, gamma: f32, n: usize) -> Vec<f32> {
+/// K-means centres of the flagged colours (started from `warm` when
+/// given), with those centres; zeros when γ is 0, there are no colours or
+/// nothing is flagged.
+fn colour_term(
+    colours: &[Vec3],
+    flags: &[bool],
+    k: usize,
+    seed: u64,
+    gamma: f32,
+    warm: Option<Centroids>,
+) -> (Vec<f32>, Option<Centroids>) {
     if gamma > 0.0 && !colours.is_empty() {
-        if let Some(c) = colour_centres(colours, flags, k, seed) {
-            return colour_distances(colours, &c, gamma);
+        if let Some(c) = colour_centres(colours, flags, k, seed, warm.as_ref()) {
+            return (colour_distances(colours, &c, gamma), Some(c));
         }
     }
-    vec![0.0; n]
+    (vec![0.0; flags.len()], None)
 }
 
 /// γ times each colour's squared distance to the nearest centre.
@@ -265,9 +295,14 @@ fn background_centres(
     outside: &[bool],
     k: usize,
     seed: u64,
+    warm: Option<&Centroids>,
 ) -> Option<Centroids> {
     let outside = flagged(rows, outside);
-    (!outside.is_empty()).then(|| super::unit_feature_centres(cache, &outside, k, seed, 30, true))
+    if outside.is_empty() {
+        return None;
+    }
+    let sample = super::unit_feature_sample(cache, &outside, true);
+    Some(fit(&sample, cache.channels, k, seed, warm))
 }
 
 /// The 6-neighbour pairs of domain voxels (node indices into `domain`)

@@ -151,6 +151,25 @@ pub fn kmeans(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize)
             .enumerate()
             .for_each(|(i, d)| *d = d.min(dist2(row(i), new)));
     }
+    lloyd(points, dim, centres, max_iters)
+}
+
+/// Lloyd iterations over `points` started from `start` (the centres of a
+/// similar set, e.g. the last round's background): they converge in a
+/// few iterations where fresh k-means++ centres take tens; `start` itself
+/// for no points.
+pub fn kmeans_from(points: &[f32], start: &Centroids, max_iters: usize) -> Centroids {
+    if points.is_empty() || start.is_empty() || start.dim == 0 {
+        return start.clone();
+    }
+    lloyd(points, start.dim, start.data.clone(), max_iters)
+}
+
+/// Lloyd iterations from `centres` until assignments stop changing or
+/// `max_iters` is reached.
+fn lloyd(points: &[f32], dim: usize, mut centres: Vec<f32>, max_iters: usize) -> Centroids {
+    let n = points.len() / dim;
+    let row = |i: usize| &points[i * dim..(i + 1) * dim];
     let kk = centres.len() / dim;
     let mut assign = vec![usize::MAX; n];
     let mut bounds = vec![Bounds::UNKNOWN; n];
@@ -397,6 +416,44 @@ mod tests {
                 assert!(same, "n {n}, dim {dim}, k {k}, seed {seed}");
             }
         }
+    }
+
+    #[test]
+    fn warm_started_iterations_find_separated_clusters_and_keep_a_fixed_point() {
+        // Three tight blobs far apart in 2-D.
+        let blobs = [[0.0f32, 0.0], [10.0, 0.0], [0.0, 10.0]];
+        let mut rng = SplitMix64::new(3);
+        let mut points = vec![];
+        for i in 0..300 {
+            let c = blobs[i % 3];
+            points.push(c[0] + 0.2 * (rng.unit() as f32 - 0.5));
+            points.push(c[1] + 0.2 * (rng.unit() as f32 - 0.5));
+        }
+        let mean = |b: usize| -> [f32; 2] {
+            let rows: Vec<&[f32]> = points.chunks_exact(2).skip(b).step_by(3).collect();
+            let n = rows.len() as f64;
+            let m = |j: usize| (rows.iter().map(|r| r[j] as f64).sum::<f64>() / n) as f32;
+            [m(0), m(1)]
+        };
+        // Started off-centre (each start nearest its own blob), the
+        // iterations land on the blobs' means.
+        let start = Centroids {
+            dim: 2,
+            data: vec![2.0, 1.0, 8.0, 2.0, 1.0, 7.0],
+        };
+        let got = kmeans_from(&points, &start, 30);
+        for b in 0..3 {
+            let want = mean(b);
+            let row = got.row(b);
+            assert!(
+                (row[0] - want[0]).abs() < 1e-5 && (row[1] - want[1]).abs() < 1e-5,
+                "{b}: {row:?} vs {want:?}"
+            );
+        }
+        // Converged centres are a fixed point, bit for bit.
+        assert_eq!(kmeans_from(&points, &got, 30), got);
+        // No points: the start comes back.
+        assert_eq!(kmeans_from(&[], &start, 30), start);
     }
 
     #[test]

@@ -746,6 +746,19 @@ fn unit_feature_centres(
     iters: usize,
     keep_zero: bool,
 ) -> Centroids {
+    kmeans(
+        &unit_feature_sample(cache, rows, keep_zero),
+        cache.channels,
+        k,
+        seed,
+        iters,
+    )
+}
+
+/// The unit features of a strided sample of at most
+/// [`MAX_CLUSTERED_ROWS`] of cache `rows`, row after row; zero features
+/// kept as zero vectors with `keep_zero`, else left out.
+fn unit_feature_sample(cache: &FeatureCache, rows: &[usize], keep_zero: bool) -> Vec<f32> {
     let stride = rows.len().div_ceil(MAX_CLUSTERED_ROWS).max(1);
     let c = cache.channels;
     let mut feats = Vec::with_capacity(rows.len().div_ceil(stride) * c);
@@ -755,7 +768,7 @@ fn unit_feature_centres(
             feats.extend(cache.row(r).iter().map(|x| x * inv));
         }
     }
-    kmeans(&feats, c, k, seed, iters)
+    feats
 }
 
 /// The bound of a `Bounded` growth step asked for on its own (the editor's
