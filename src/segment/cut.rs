@@ -35,7 +35,8 @@
 //!
 //! Empty space costs nothing to cut through, so objects apart stay apart
 //! whatever λ is. Each round re-fits the background centres to the new
-//! background; the object is then what stays joined to the stroke.
+//! background (Lloyd iterations from the last round's centres); the object
+//! is then what stays joined to the stroke.
 
 use super::kmeans::{kmeans, kmeans_from, Centroids};
 use super::maxflow::{Graph, HARD};
