@@ -345,3 +345,54 @@ fn the_default_step_is_half_a_cell_along_each_ray() {
     }
     assert!(Step::World(0.0).check().is_err() && Step::Cells(f32::NAN).check().is_err());
 }
+
+#[test]
+fn rendering_without_colour_keeps_features_depth_and_opacity_to_the_bit() {
+    // Two overlapping blobs of different colours, one moved and recoloured:
+    // features, depth and opacity do not depend on shading, so turning it
+    // off (as a stroke's pixels do) changes none of them; the colour is
+    // then the background's share alone.
+    let a = Arc::new(blob(Vec3::new(-0.2, 0.0, 0.0), 0.5, Vec3::new(0.9, 0.2, 0.1)));
+    let b = Arc::new(blob(Vec3::new(0.2, 0.1, 0.0), 0.4, Vec3::new(0.1, 0.3, 0.8)));
+    let mut moved = Layer::new(b);
+    moved.to_world = Affine3A::from_translation(Vec3::new(0.0, 0.05, 0.1));
+    moved.color_edit = Some(ColorEdit {
+        hue: 40.0,
+        ..Default::default()
+    });
+    let scene = Scene::new(vec![Layer::new(a), moved]);
+    let rays: Vec<Ray> = (0..40)
+        .map(|i| Ray {
+            origin: Vec3::new(-3.0, -0.5 + i as f32 * 0.025, 0.05),
+            dir: Vec3::X,
+        })
+        .collect();
+    let on = RenderOptions {
+        features: true,
+        ..Default::default()
+    };
+    let off = RenderOptions {
+        colour: false,
+        ..on.clone()
+    };
+    let (with, without) = (
+        render_rays(&scene, &rays, &on).unwrap(),
+        render_rays(&scene, &rays, &off).unwrap(),
+    );
+    assert!(with.opacity.iter().any(|&o| o > 0.5), "the rays hit the blobs");
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&with.features), bits(&without.features));
+    assert_eq!(bits(&with.depth), bits(&without.depth));
+    assert_eq!(bits(&with.opacity), bits(&without.opacity));
+    for (i, (c, o)) in without.color.iter().zip(&without.opacity).enumerate() {
+        let background = scene.background * (1.0 - o);
+        assert!(
+            (*c - background).abs().max_element() < 1e-6,
+            "ray {i}: {c} vs {background}"
+        );
+        assert!(
+            (with.color[i] - *c).length() > 1e-3 || *o < 1e-3,
+            "ray {i} is shaded when colour is on"
+        );
+    }
+}

@@ -230,6 +230,10 @@ pub struct RenderOptions {
     pub features: bool,
     pub depth: bool,
     pub layer_opacity: bool,
+    /// Shade colour (off: `color` holds only the background's share, for
+    /// callers that want features, depth or opacity alone: a stroke's
+    /// pixels).
+    pub colour: bool,
     /// Rays stop when the transmittance drops below this.
     pub min_transmittance: f32,
     pub probes: Vec<Probe>,
@@ -242,6 +246,7 @@ impl Default for RenderOptions {
             features: false,
             depth: true,
             layer_opacity: false,
+            colour: true,
             min_transmittance: 1e-4,
             probes: vec![],
         }
@@ -463,12 +468,14 @@ impl<'a> Tracer<'a> {
             }
             let share = s / sum;
             let p = l.to_local.transform_point3(ray.at(t));
-            let dir = l.to_local.transform_vector3(ray.dir).normalize();
-            let mut ck = self.samplers[k].color(p, dir);
-            if let Some(e) = &l.color_edit {
-                ck = e.apply(ck);
+            if self.opts.colour {
+                let dir = l.to_local.transform_vector3(ray.dir).normalize();
+                let mut ck = self.samplers[k].color(p, dir);
+                if let Some(e) = &l.color_edit {
+                    ck = e.apply(ck);
+                }
+                c += share * ck;
             }
-            c += share * ck;
             if self.nl > 0 {
                 layer_opacity[k] += w * share;
             }

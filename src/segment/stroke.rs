@@ -142,6 +142,7 @@ pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<Str
     let opts = RenderOptions {
         features: true,
         depth: true,
+        colour: false,
         ..Default::default()
     };
     let out = render_rays(scene, &rays, &opts)?;
