@@ -31,10 +31,17 @@ use rayon::prelude::*;
 /// coarse copy (a coarse axis of one point has no spacing).
 pub const MIN_FINE_RES: usize = 4;
 
-/// The coarse voxel holding fine voxel coordinates `c`.
+/// The coarse voxel (index into the coarse grid) holding fine voxel `v` of
+/// a grid of resolution `fine_res`.
 #[inline]
-fn parent_coords(c: [usize; 3]) -> [usize; 3] {
-    c.map(|x| x / 2)
+fn parent(fine_res: [usize; 3], v: usize) -> usize {
+    let res = coarse_res(fine_res);
+    let [x, y, z] = [
+        v % fine_res[0],
+        (v / fine_res[0]) % fine_res[1],
+        v / (fine_res[0] * fine_res[1]),
+    ];
+    x / 2 + res[0] * (y / 2 + res[1] * (z / 2))
 }
 
 /// The coarse resolution of a fine one.
@@ -56,14 +63,9 @@ pub fn build(fine: &FeatureCache) -> Option<FeatureCache> {
         fine.geom.bounds.min + 2.0 * h * glam::Vec3::new((res[0] - 1) as f32, (res[1] - 1) as f32, (res[2] - 1) as f32),
     );
     let geom = GridGeom::new(bounds, res);
-    let cgeom = geom;
-    let parent = move |v: u32| {
-        let [x, y, z] = parent_coords(fine.geom.coords(v as usize));
-        cgeom.index(x, y, z) as u32
-    };
     let mut bits = Bitmap::new(res);
     for &v in &fine.voxels {
-        bits.set(parent(v) as usize, true);
+        bits.set(parent(fres, v as usize), true);
     }
     let index = RankIndex::new(bits);
     let voxels: Vec<u32> = index.bits().ones().map(|v| v as u32).collect();
@@ -99,7 +101,7 @@ pub fn build(fine: &FeatureCache) -> Option<FeatureCache> {
             slab_rows((2 * z + 2).min(fres[2]), fslab, &fine.voxels),
         );
         for r in lo..hi {
-            let p = parent(fine.voxels[r]) as usize;
+            let p = parent(fres, fine.voxels[r] as usize);
             let i = index.slot(p).expect("parent of a cached voxel") - first;
             let sig = fine.sigma[r];
             s[i] = s[i].max(sig);
@@ -131,15 +133,13 @@ pub fn build(fine: &FeatureCache) -> Option<FeatureCache> {
     ))
 }
 
-/// The coarse voxels holding the fine voxels set in `fine_mask` (a grid of
-/// resolution `fine_res`).
+/// The coarse voxels holding the fine voxels set in `fine_mask`.
 pub fn downsample(fine_mask: &Bitmap) -> Bitmap {
     let fres = fine_mask.res();
     let res = coarse_res(fres);
     let mut out = Bitmap::new(res);
     for v in fine_mask.ones() {
-        let [x, y, z] = parent_coords([v % fres[0], (v / fres[0]) % fres[1], v / (fres[0] * fres[1])]);
-        out.set(x + res[0] * (y + res[1] * z), true);
+        out.set(parent(fres, v), true);
     }
     out
 }
@@ -172,19 +172,7 @@ pub fn upsample(fine: &FeatureCache, coarse_mask: &Bitmap, floor: f32) -> Bitmap
 
 /// The coarse voxels of fine voxel indices, ascending and distinct.
 pub fn parents(fine_res: [usize; 3], voxels: &[u32]) -> Vec<u32> {
-    let res = coarse_res(fine_res);
-    let mut out: Vec<u32> = voxels
-        .iter()
-        .map(|&v| {
-            let v = v as usize;
-            let [x, y, z] = parent_coords([
-                v % fine_res[0],
-                (v / fine_res[0]) % fine_res[1],
-                v / (fine_res[0] * fine_res[1]),
-            ]);
-            (x + res[0] * (y + res[1] * z)) as u32
-        })
-        .collect();
+    let mut out: Vec<u32> = voxels.iter().map(|&v| parent(fine_res, v as usize) as u32).collect();
     out.sort_unstable();
     out.dedup();
     out

@@ -546,11 +546,10 @@ impl MaskBuilder {
         if level.1 != self.mask {
             level.0.mask = crate::field::coarse::downsample(&self.mask);
         }
-        let t = level.0.stroke_on(scene, coarse, fine, stroke, polarity, p)?;
+        let mut t = level.0.stroke_on(scene, coarse, fine, stroke, polarity, p)?;
         let t0 = Instant::now();
         let floor = p.sigma_floor(fine.voxel_size);
         self.mask = crate::field::coarse::upsample(fine, &level.0.mask, floor);
-        let mut t = t;
         level.1 = self.mask.clone();
         t.cut_ms += ms_since(t0);
         Ok(t)
