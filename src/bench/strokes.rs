@@ -138,6 +138,10 @@ fn figures(s: &Stroke, runs: &[Run]) -> Result<StrokeFigures> {
     stages.nnfm_ms = med(|t| t.nnfm_ms);
     stages.grow_ms = med(|t| t.grow_ms);
     stages.cut_ms = med(|t| t.cut_ms);
+    stages.cut.edges_ms = med(|t| t.cut.edges_ms);
+    stages.cut.fit_ms = med(|t| t.cut.fit_ms);
+    stages.cut.distance_ms = med(|t| t.cut.distance_ms);
+    stages.cut.flow_ms = med(|t| t.cut.flow_ms);
     let cpus: Option<Vec<f64>> = runs.iter().map(|r| r.cpu_ms).collect();
     Ok(StrokeFigures {
         object: s.object.clone(),
@@ -190,6 +194,33 @@ pub fn field_stroke_table(r: &FieldStrokeReport) -> Table {
     t
 }
 
+/// One row per stroke: the graph cut's stages (median ms over the runs;
+/// with a coarse grid, `cut` in the stroke table also maps the mask back).
+pub fn cut_stage_table(r: &FieldStrokeReport) -> Table {
+    let mut t = Table::new(&[
+        "stroke",
+        "rounds",
+        "edges",
+        "bg fit",
+        "bg distances",
+        "max-flow",
+        "cut ms",
+    ]);
+    for (i, s) in r.strokes.iter().enumerate() {
+        let c = &s.stages.cut;
+        t.row(vec![
+            format!("{i} {}", s.polarity),
+            c.rounds.to_string(),
+            format!("{:.1}", c.edges_ms),
+            format!("{:.1}", c.fit_ms),
+            format!("{:.1}", c.distance_ms),
+            format!("{:.1}", c.flow_ms),
+            format!("{:.1}", s.stages.cut_ms),
+        ]);
+    }
+    t
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -216,6 +247,8 @@ mod tests {
             assert_eq!(f.mask_voxels, b.mask.count(), "{}", s.object);
             assert_eq!((f.runs, f.object.as_str()), (2, s.object.as_str()));
             assert!(f.wall_ms >= f.stages.stroke_features_ms && f.stages.region_voxels > 0);
+            // The cut ran, and says how many rounds.
+            assert!(f.stages.cut.rounds >= 1, "{}", s.object);
         }
         assert!(r.worst_ms() >= r.strokes[0].wall_ms);
         // Nothing to replay, or no runs: an error, not a panic.

@@ -259,7 +259,7 @@ fn run_segment(a: SegmentArgs) -> Result<()> {
 
 /// `isrf bench segment --field F --strokes S`: stroke latency on a real field.
 fn run_field_strokes(path: &std::path::Path, a: &SegmentArgs) -> Result<()> {
-    use isrf::bench::strokes::{bench_field_strokes, field_stroke_table};
+    use isrf::bench::strokes::{bench_field_strokes, cut_stage_table, field_stroke_table};
     let p = a.params.params()?;
     let cameras = a.cameras.as_deref().map(isrf::camera::CameraSet::load).transpose()?;
     let mut strokes = vec![];
@@ -287,6 +287,8 @@ fn run_field_strokes(path: &std::path::Path, a: &SegmentArgs) -> Result<()> {
         isrf::bench::mb_or_na(r.peak_rss)
     );
     print!("{}", field_stroke_table(&r));
+    println!("graph cut stages (ms):");
+    print!("{}", cut_stage_table(&r));
     println!("slowest stroke-to-mask ms: {:.1}", r.worst_ms());
     Ok(())
 }

@@ -117,9 +117,30 @@ impl CentreBlocks {
     }
 }
 
+/// When Lloyd iterations stop: when no assignment changes, after
+/// `max_iters`, or (with `tol` > 0) once no centre moved farther than `tol`
+/// times the points' RMS distance to their mean.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Stop {
+    pub max_iters: usize,
+    pub tol: f32,
+}
+
+impl Stop {
+    /// Until assignments settle (or `max_iters`).
+    pub fn exact(max_iters: usize) -> Self {
+        Stop { max_iters, tol: 0.0 }
+    }
+}
+
 /// k-means++ initialisation then Lloyd iterations until assignments stop
 /// changing or `max_iters` is reached. `points` is `n × dim`.
 pub fn kmeans(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize) -> Centroids {
+    kmeans_until(points, dim, k, seed, Stop::exact(max_iters))
+}
+
+/// [`kmeans`] with a stopping rule.
+pub fn kmeans_until(points: &[f32], dim: usize, k: usize, seed: u64, stop: Stop) -> Centroids {
     let n = if dim == 0 { 0 } else { points.len() / dim };
     if n == 0 || k == 0 {
         return Centroids { dim, data: vec![] };
@@ -151,30 +172,34 @@ pub fn kmeans(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize)
             .enumerate()
             .for_each(|(i, d)| *d = d.min(dist2(row(i), new)));
     }
-    lloyd(points, dim, centres, max_iters)
+    lloyd(points, dim, centres, stop)
 }
 
 /// Lloyd iterations over `points` started from `start` (the centres of a
 /// similar set, e.g. the last round's background): they converge in a
 /// few iterations where fresh k-means++ centres take tens; `start` itself
 /// for no points.
-pub fn kmeans_from(points: &[f32], start: &Centroids, max_iters: usize) -> Centroids {
+pub fn kmeans_from(points: &[f32], start: &Centroids, stop: Stop) -> Centroids {
     if points.is_empty() || start.is_empty() || start.dim == 0 {
         return start.clone();
     }
-    lloyd(points, start.dim, start.data.clone(), max_iters)
+    lloyd(points, start.dim, start.data.clone(), stop)
 }
 
-/// Lloyd iterations from `centres` until assignments stop changing or
-/// `max_iters` is reached.
-fn lloyd(points: &[f32], dim: usize, mut centres: Vec<f32>, max_iters: usize) -> Centroids {
+/// Lloyd iterations from `centres` until `stop` says so.
+fn lloyd(points: &[f32], dim: usize, mut centres: Vec<f32>, stop: Stop) -> Centroids {
     let n = points.len() / dim;
     let row = |i: usize| &points[i * dim..(i + 1) * dim];
     let kk = centres.len() / dim;
     let mut assign = vec![usize::MAX; n];
     let mut bounds = vec![Bounds::UNKNOWN; n];
     let mut shift = CentreShift::none(kk);
-    for _ in 0..max_iters {
+    let settled = if stop.tol > 0.0 {
+        stop.tol * rms_spread(points, dim)
+    } else {
+        0.0
+    };
+    for _ in 0..stop.max_iters {
         let blocks = CentreBlocks::new(&centres, dim);
         let half_gap = half_gaps(&centres, dim);
         // Each point's nearest centre on its own (the same sums as one
@@ -213,8 +238,28 @@ fn lloyd(points: &[f32], dim: usize, mut centres: Vec<f32>, max_iters: usize) ->
             }
         }
         shift = CentreShift::between(&old, &centres, dim);
+        if shift.top.0 < settled {
+            break;
+        }
     }
     Centroids { dim, data: centres }
+}
+
+/// The RMS distance of `points` to their mean.
+fn rms_spread(points: &[f32], dim: usize) -> f32 {
+    let n = (points.len() / dim).max(1) as f64;
+    let mut mean = vec![0.0f64; dim];
+    for p in points.chunks_exact(dim) {
+        for (m, &v) in mean.iter_mut().zip(p) {
+            *m += v as f64;
+        }
+    }
+    mean.iter_mut().for_each(|m| *m /= n);
+    let sq: f64 = points
+        .chunks_exact(dim)
+        .map(|p| p.iter().zip(&mean).map(|(&v, m)| (v as f64 - m).powi(2)).sum::<f64>())
+        .sum();
+    (sq / n).sqrt() as f32
 }
 
 /// Hamerly's bounds on a point's distances (not squared): an upper bound
@@ -441,7 +486,7 @@ mod tests {
             dim: 2,
             data: vec![2.0, 1.0, 8.0, 2.0, 1.0, 7.0],
         };
-        let got = kmeans_from(&points, &start, 30);
+        let got = kmeans_from(&points, &start, Stop::exact(30));
         for b in 0..3 {
             let want = mean(b);
             let row = got.row(b);
@@ -451,9 +496,61 @@ mod tests {
             );
         }
         // Converged centres are a fixed point, bit for bit.
-        assert_eq!(kmeans_from(&points, &got, 30), got);
+        assert_eq!(kmeans_from(&points, &got, Stop::exact(30)), got);
         // No points: the start comes back.
-        assert_eq!(kmeans_from(&[], &start, 30), start);
+        assert_eq!(kmeans_from(&[], &start, Stop::exact(30)), start);
+    }
+
+    #[test]
+    fn a_tolerance_stops_once_centres_barely_move() {
+        // Points spread evenly along a line: Lloyd's centres creep along
+        // it for many iterations, each move smaller than the last.
+        let points: Vec<f32> = (0..2000).map(|i| i as f32 / 2000.0).collect();
+        let start = Centroids {
+            dim: 1,
+            data: vec![0.0, 0.01, 0.02, 0.03],
+        };
+        let exact = kmeans_from(&points, &start, Stop::exact(500));
+        // A tolerance larger than any move: one update, then stop.
+        let huge = Stop {
+            max_iters: 500,
+            tol: 1e3,
+        };
+        assert_eq!(
+            kmeans_from(&points, &start, huge),
+            kmeans_from(&points, &start, Stop::exact(1))
+        );
+        // A small one stops early, near where the exact iterations end:
+        // the creep left is a geometric tail of the moves it stopped at.
+        let tol = Stop {
+            max_iters: 500,
+            tol: 1e-3,
+        };
+        let early = kmeans_from(&points, &start, tol);
+        assert_ne!(early, exact);
+        let far = early
+            .data
+            .iter()
+            .zip(&exact.data)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
+        assert!(far < 0.05, "{:?} vs {:?}", early.data, exact.data);
+        // The exact centres split [0, 1] into four equal cells.
+        for (c, want) in exact.data.iter().zip([0.125, 0.375, 0.625, 0.875]) {
+            assert!((c - want).abs() < 2e-3, "{:?}", exact.data);
+        }
+        // Tolerance 0 is the exact rule.
+        assert_eq!(
+            kmeans_from(
+                &points,
+                &start,
+                Stop {
+                    max_iters: 500,
+                    tol: 0.0
+                }
+            ),
+            exact
+        );
     }
 
     #[test]

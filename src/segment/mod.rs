@@ -272,8 +272,11 @@ pub struct Timings {
     pub kmeans_ms: f64,
     pub nnfm_ms: f64,
     pub grow_ms: f64,
-    /// Stable rule: the graph cut's refinement.
+    /// Stable rule: the graph cut's refinement (with a coarse grid, also
+    /// mapping the mask back to the fine one).
     pub cut_ms: f64,
+    /// The graph cut's stages (within `cut_ms`).
+    pub cut: cut::CutTimings,
     pub grow_steps: usize,
     pub stroke_pixels: usize,
     pub seed_voxels: usize,
@@ -400,7 +403,8 @@ fn segment_anchored(
         t.threshold = s.threshold;
         let t0 = Instant::now();
         let hard = anchor::near_anchors(&region, anchors, anchor::radius(cache));
-        let region = cut_region(cache, field, &mut dist, &s, &hard, anchors, negatives, p).unwrap_or(s.region);
+        let region =
+            cut_region(cache, field, &mut dist, &s, &hard, anchors, negatives, p, &mut t.cut).unwrap_or(s.region);
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
         return Ok((region, dist));
@@ -429,6 +433,7 @@ fn cut_region(
     anchors: &[u32],
     negatives: &Negatives,
     p: &SegmentParams,
+    t: &mut cut::CutTimings,
 ) -> Option<Bitmap> {
     if p.cut.rounds == 0 || hard.is_empty() {
         return None;
@@ -450,7 +455,7 @@ fn cut_region(
             0.0
         },
     };
-    let cut = cut::refine(&input, &p.cut, p.kmeans_seed)?;
+    let cut = cut::refine(&input, &p.cut, p.kmeans_seed, t)?;
     anchor::joined_seeds(&cut, anchors, anchor::radius(cache))
 }
 
@@ -621,7 +626,7 @@ impl MaskBuilder {
                     .collect();
                 self.negatives.add(s.dist.centres(), &touched);
                 let field = anchor::layer_of(scene, owner).map(|l| &*l.field);
-                if !cuts || !self.cut_out(cache, field, &s, p)? {
+                if !cuts || !self.cut_out(cache, field, &s, p, &mut t.cut)? {
                     self.subtract_competing(cache, &s.region, s.dist.centres().clone(), p)?;
                 }
                 t.cut_ms += ms_since(t0);
@@ -650,6 +655,7 @@ impl MaskBuilder {
         field: Option<&Field>,
         s: &StrokeRegion,
         p: &SegmentParams,
+        t: &mut cut::CutTimings,
     ) -> Result<bool> {
         let object = self.object_centres(cache, &s.region, p)?;
         if object.is_empty() || !self.mask.any() {
@@ -680,7 +686,7 @@ impl MaskBuilder {
             known_background: self.negatives.centres.as_ref(),
             unlike: p.cut.background_min,
         };
-        let Some(kept) = cut::refine(&input, &p.cut, p.kmeans_seed) else {
+        let Some(kept) = cut::refine(&input, &p.cut, p.kmeans_seed, t) else {
             return Ok(false);
         };
         // A negative stroke only removes: the reached voxels the cut left
