@@ -137,7 +137,7 @@ pub struct StrokeSamples {
 
 /// [`stroke_features`] with the surface points of the kept pixels.
 pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<StrokeSamples> {
-    let px = stroke_pixels(s)?;
+    let px = thinned(stroke_pixels(s)?, MAX_STROKE_SAMPLES);
     let rays: Vec<_> = px.iter().map(|&(x, y)| s.camera.pixel_ray(x, y)).collect();
     let opts = RenderOptions {
         features: true,
@@ -175,6 +175,35 @@ pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<Str
         channels: c,
         hits,
     })
+}
+
+/// A stroke's pixels beyond this many are thinned to a regular sub-grid
+/// before they are rendered (see [`thinned`]). Lego's stroke (2,169 pixels
+/// → 542): features 50 → 12–19 ms, the alpha IoU the same (0.9919); fern
+/// NVOS (2,783 → 696) 0.774 → 0.778; the realistic benchmark's 3D mean
+/// 0.670 → 0.669 (its wall stroke: 0.583 → 0.574).
+pub const MAX_STROKE_SAMPLES: usize = 1024;
+
+/// `px` (image pixels) thinned to at most about `cap` when there are more:
+/// the pixels on every s-th row and column, s the smallest step that keeps
+/// no more than `cap` of a filled block. A wide brush's neighbouring pixels
+/// see nearly the same features, a fraction of a voxel apart; rendering
+/// each took a fifth of the lego stroke's time.
+pub fn thinned(px: Vec<(u32, u32)>, cap: usize) -> Vec<(u32, u32)> {
+    if px.len() <= cap || cap == 0 {
+        return px;
+    }
+    let step = (px.len() as f64 / cap as f64).sqrt().ceil() as u32;
+    let kept: Vec<(u32, u32)> = px
+        .iter()
+        .copied()
+        .filter(|&(x, y)| x % step == 0 && y % step == 0)
+        .collect();
+    // A thin diagonal stroke may miss the sub-grid: keep every step²-th pixel.
+    if kept.is_empty() {
+        return px.into_iter().step_by((step * step) as usize).collect();
+    }
+    kept
 }
 
 // ------------------------------------------------------------ JSON documents
@@ -596,5 +625,24 @@ mod tests {
         assert_eq!(clip_segment((2.0, 2.0), (3.0, 3.0), b), Some((0.0, 1.0)));
         assert_eq!(clip_segment((-5.0, 20.0), (15.0, 20.0), b), None);
         assert_eq!(clip_segment((5.0, -1.0), (5.0, -1.0), b), None);
+    }
+
+    #[test]
+    fn wide_strokes_are_thinned_to_a_regular_sub_grid() {
+        // A wide brush: a 60×40 block of pixels.
+        let block: Vec<(u32, u32)> = (0..40).flat_map(|y| (0..60).map(move |x| (x, y))).collect();
+        assert_eq!(thinned(block.clone(), 2400), block, "within the cap: untouched");
+        let thin = thinned(block.clone(), 1000);
+        // Every second row and column: a quarter, spread over the block.
+        assert_eq!(thin.len(), 600);
+        assert!(thin.iter().all(|&(x, y)| x % 2 == 0 && y % 2 == 0));
+        assert_eq!((thin[0], *thin.last().unwrap()), ((0, 0), (58, 38)));
+        let thin = thinned(block, 100);
+        assert!(thin.len() <= 100 && thin.len() >= 40, "{}", thin.len());
+        // A one-pixel diagonal line off the sub-grid still keeps pixels.
+        let diagonal: Vec<(u32, u32)> = (0..2000).map(|i| (2 * i + 1, 2 * i)).collect();
+        let thin = thinned(diagonal.clone(), 1000);
+        assert!(!thin.is_empty() && thin.len() <= 1000);
+        assert!(thin.iter().all(|p| diagonal.contains(p)));
     }
 }
