@@ -41,7 +41,8 @@ pub struct FieldStrokeReport {
     pub cached_voxels: usize,
     pub channels: usize,
     pub cache_ms: f64,
-    /// Making the cache's coarse copy (0 when not asked for).
+    /// Making the coarse copy and the cut's neighbour distances
+    /// ([`crate::segment::prepare`]).
     pub coarse_ms: f64,
     pub macro_ms: f64,
     pub strokes: Vec<StrokeFigures>,
@@ -68,9 +69,9 @@ pub fn bench_field_strokes(
     let load_average = load_average();
     let (cache, cache_ms) = time_ms(|| field.feature_cache());
     let cache = cache?;
-    // The coarse copy is made once per field too (the editor makes it
-    // when it opens one); 0 when the pipeline does not use it.
-    let (_, coarse_ms) = time_ms(|| crate::segment::coarse_cache(&cache, p).map(|c| c.len()));
+    // The coarse copy and the cut's neighbour distances are made once per
+    // field too (the editor makes them when it opens one).
+    let (_, coarse_ms) = time_ms(|| crate::segment::prepare(&cache, p));
     let (_, macro_ms) = time_ms(|| field.macro_grid().occupied_fraction());
     let scene = Scene::single(field.clone());
     // runs[stroke]: one per repeat.

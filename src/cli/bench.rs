@@ -280,7 +280,7 @@ fn run_field_strokes(path: &std::path::Path, a: &SegmentArgs) -> Result<()> {
         r.load_average.map_or_else(|| "n/a".into(), |l| format!("{l:.2}"))
     );
     println!(
-        "one-off per field (not in the stroke times): load {load_ms:.0} ms, feature cache {:.0} ms, coarse copy {:.0} ms, macro grid {:.0} ms; peak RSS {}",
+        "one-off per field (not in the stroke times): load {load_ms:.0} ms, feature cache {:.0} ms, coarse copy and cut neighbours {:.0} ms, macro grid {:.0} ms; peak RSS {}",
         r.cache_ms,
         r.coarse_ms,
         r.macro_ms,

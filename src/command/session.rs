@@ -404,7 +404,7 @@ impl Session {
             let cache = f.field.feature_cache()?;
             // Made once per field, like the cache itself.
             self.progress.set("coarse per-voxel features", 0, 0);
-            crate::segment::coarse_cache(&cache, params);
+            crate::segment::prepare(&cache, params);
             Some(cache)
         };
         // Stroke features come from the field as it stands in the world.

@@ -364,30 +364,27 @@ fn neighbour_edges(
     colours: &[Vec3],
     p: &CutParams,
 ) -> Vec<(u32, u32, f32)> {
-    let res = cache.geom.res;
-    let strides = [1, res[0], res[0] * res[1]];
     let mut node_of_row = vec![u32::MAX; cache.len()];
     for (i, &r) in rows.iter().enumerate() {
         node_of_row[r] = i as u32;
     }
-    // Domain node i (voxel v) and its +x, +y, +z neighbours in the domain.
-    let pairs_of = |i: usize, v: u32, out: &mut Vec<(u32, u32, f32, f32)>| {
-        let at = cache.geom.coords(v as usize);
-        for axis in (0..3).filter(|&a| at[a] + 1 < res[a]) {
-            let Some(r) = cache.index.slot(v as usize + strides[axis]) else {
-                continue;
+    let neighbours = cache.neighbours();
+    // Domain node i and its +x, +y, +z neighbours in the domain.
+    let pairs_of = |i: usize, out: &mut Vec<(u32, u32, f32, f32)>| {
+        let n = &neighbours[rows[i]];
+        for axis in 0..3 {
+            let Some(&j) = node_of_row.get(n.row[axis] as usize) else {
+                continue; // not cached
             };
-            let j = node_of_row[r] as usize;
-            if j == u32::MAX as usize {
-                continue;
+            if j == u32::MAX {
+                continue; // not in the domain
             }
-            let df = unit_distance(cache, rows[i], rows[j]);
             let dc = if colours.is_empty() {
                 0.0
             } else {
-                (colours[i] - colours[j]).length_squared()
+                (colours[i] - colours[j as usize]).length_squared()
             };
-            out.push((i as u32, j as u32, df, dc));
+            out.push((i as u32, j, n.distance[axis], dc));
         }
     };
     // In parallel over chunks of the domain, collected in order: the same
@@ -398,8 +395,8 @@ fn neighbour_edges(
         .enumerate()
         .flat_map_iter(|(c, chunk)| {
             let mut out = Vec::with_capacity(chunk.len() * 3);
-            for (k, &v) in chunk.iter().enumerate() {
-                pairs_of(c * CHUNK + k, v, &mut out);
+            for k in 0..chunk.len() {
+                pairs_of(c * CHUNK + k, &mut out);
             }
             out
         })
@@ -415,30 +412,6 @@ fn neighbour_edges(
             (i, j, p.lambda * w)
         })
         .collect()
-}
-
-/// ‖φ̂_a − φ̂_b‖² between two cache rows' unit features, in eight
-/// partial sums: a plain sum is a serial chain of float adds the compiler
-/// may not reorder, and with three edges per voxel it was the slowest part
-/// of building the cut's graph.
-fn unit_distance(cache: &FeatureCache, a: usize, b: usize) -> f32 {
-    let (ia, ib) = (cache.inv_norm[a], cache.inv_norm[b]);
-    let (ra, rb) = (cache.row(a), cache.row(b));
-    let (ca, cb) = (ra.chunks_exact(8), rb.chunks_exact(8));
-    let tail: f32 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| (x * ia - y * ib) * (x * ia - y * ib))
-        .sum();
-    let mut acc = [0.0f32; 8];
-    for (x, y) in ca.zip(cb) {
-        for l in 0..8 {
-            let d = x[l] * ia - y[l] * ib;
-            acc[l] += d * d;
-        }
-    }
-    acc.iter().sum::<f32>() + tail
 }
 
 #[cfg(test)]

@@ -255,6 +255,17 @@ impl SegmentParams {
     }
 }
 
+/// Makes what every stroke on `cache`'s field reuses: the coarse copy when
+/// strokes go there, and the neighbour distances of the graph cut's grid
+/// (so that the first stroke does not pay for them; the editor does this
+/// when it opens a field).
+pub fn prepare(cache: &FeatureCache, p: &SegmentParams) {
+    let on = coarse_cache(cache, p).unwrap_or(cache);
+    if p.grow.rule == GrowthRule::Stable && p.cut.rounds > 0 {
+        on.neighbours();
+    }
+}
+
 /// The cache a stroke is segmented on, when it is `cache`'s coarse copy
 /// (made on first use).
 pub fn coarse_cache<'a>(cache: &'a FeatureCache, p: &SegmentParams) -> Option<&'a FeatureCache> {
