@@ -107,16 +107,6 @@ pub struct CutTimings {
     pub rounds: usize,
 }
 
-impl CutTimings {
-    pub fn add(&mut self, o: &CutTimings) {
-        self.edges_ms += o.edges_ms;
-        self.fit_ms += o.fit_ms;
-        self.distance_ms += o.distance_ms;
-        self.flow_ms += o.flow_ms;
-        self.rounds += o.rounds;
-    }
-}
-
 /// What the cut works on.
 pub struct CutInput<'a> {
     pub cache: &'a FeatureCache,
