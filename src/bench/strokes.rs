@@ -41,7 +41,7 @@ pub struct FieldStrokeReport {
     pub cached_voxels: usize,
     pub channels: usize,
     pub cache_ms: f64,
-    /// Making the coarse copy and the cut's neighbour distances
+    /// Making the coarse copy and the cut's neighbour table
     /// ([`crate::segment::prepare`]).
     pub coarse_ms: f64,
     pub macro_ms: f64,
@@ -69,8 +69,8 @@ pub fn bench_field_strokes(
     let load_average = load_average();
     let (cache, cache_ms) = time_ms(|| field.feature_cache());
     let cache = cache?;
-    // The coarse copy and the cut's neighbour distances are made once per
-    // field too (the editor makes them when it opens one).
+    // The coarse copy and the cut's neighbour table are made once per
+    // field too (a session's first stroke makes them with the cache).
     let (_, coarse_ms) = time_ms(|| crate::segment::prepare(&cache, p));
     let (_, macro_ms) = time_ms(|| field.macro_grid().occupied_fraction());
     let scene = Scene::single(field.clone());

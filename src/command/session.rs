@@ -403,7 +403,7 @@ impl Session {
             self.progress.set("per-voxel features", 0, 0);
             let cache = f.field.feature_cache()?;
             // Made once per field, like the cache itself.
-            self.progress.set("coarse per-voxel features", 0, 0);
+            self.progress.set("coarse per-voxel features and neighbours", 0, 0);
             crate::segment::prepare(&cache, params);
             Some(cache)
         };

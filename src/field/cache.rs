@@ -183,7 +183,7 @@ impl FeatureCache {
     /// ‖φ̂_a − φ̂_b‖² between two rows' unit features, in eight partial
     /// sums: a plain sum is a serial chain of float adds the compiler may
     /// not reorder.
-    pub fn unit_distance(&self, a: usize, b: usize) -> f32 {
+    fn unit_distance(&self, a: usize, b: usize) -> f32 {
         let (ia, ib) = (self.inv_norm[a], self.inv_norm[b]);
         let (ra, rb) = (self.row(a), self.row(b));
         let (ca, cb) = (ra.chunks_exact(8), rb.chunks_exact(8));

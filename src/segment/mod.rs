@@ -256,9 +256,9 @@ impl SegmentParams {
 }
 
 /// Makes what every stroke on `cache`'s field reuses: the coarse copy when
-/// strokes go there, and the neighbour distances of the graph cut's grid
-/// (so that the first stroke does not pay for them; the editor does this
-/// when it opens a field).
+/// strokes go there, and the neighbour table of the graph cut's grid. The
+/// session's first stroke on a field makes them with the feature cache,
+/// under a progress message; the stroke benchmark counts them as one-off.
 pub fn prepare(cache: &FeatureCache, p: &SegmentParams) {
     let on = coarse_cache(cache, p).unwrap_or(cache);
     if p.grow.rule == GrowthRule::Stable && p.cut.rounds > 0 {
@@ -745,34 +745,16 @@ impl MaskBuilder {
 }
 
 /// K-means centres of the unit features of a mask's voxels (a strided
-/// sample of at most 20k of them, so that large masks stay cheap).
+/// sample of at most [`MAX_CLUSTERED_ROWS`], so that large masks stay
+/// cheap; zero features left out).
 fn mask_centres(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Centroids {
     let rows: Vec<usize> = mask.ones().filter_map(|v| cache.index.slot(v)).collect();
-    unit_feature_centres(cache, &rows, p.k, p.kmeans_seed, p.kmeans_iters, false)
+    let sample = unit_feature_sample(cache, &rows, false);
+    kmeans(&sample, cache.channels, p.k, p.kmeans_seed, p.kmeans_iters)
 }
 
-/// Most cache rows [`unit_feature_centres`] clusters (a strided sample).
+/// Most cache rows a background or mask model clusters (a strided sample).
 const MAX_CLUSTERED_ROWS: usize = 20_000;
-
-/// K-means centres of the unit features of cache `rows` (a strided sample
-/// of at most [`MAX_CLUSTERED_ROWS`]); zero features are clustered as zero
-/// vectors with `keep_zero`, else left out.
-fn unit_feature_centres(
-    cache: &FeatureCache,
-    rows: &[usize],
-    k: usize,
-    seed: u64,
-    iters: usize,
-    keep_zero: bool,
-) -> Centroids {
-    kmeans(
-        &unit_feature_sample(cache, rows, keep_zero),
-        cache.channels,
-        k,
-        seed,
-        iters,
-    )
-}
 
 /// The unit features of a strided sample of at most
 /// [`MAX_CLUSTERED_ROWS`] of cache `rows`, row after row; zero features

@@ -184,9 +184,10 @@ pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<Str
 /// 0.670 → 0.669 (its wall stroke: 0.583 → 0.574).
 pub const MAX_STROKE_SAMPLES: usize = 1024;
 
-/// `px` (image pixels) thinned to at most about `cap` when there are more:
-/// the pixels on every s-th row and column, s the smallest step that keeps
-/// no more than `cap` of a filled block. A wide brush's neighbouring pixels
+/// `px` (image pixels) thinned when there are more than `cap`: the pixels
+/// on every s-th row and column, s the smallest step that keeps no more
+/// than `cap` of a filled area (a thin line along a row or column keeps
+/// a 1/s share of its pixels). A wide brush's neighbouring pixels
 /// see nearly the same features, a fraction of a voxel apart; rendering
 /// each took a fifth of the lego stroke's time.
 pub fn thinned(px: Vec<(u32, u32)>, cap: usize) -> Vec<(u32, u32)> {
