@@ -140,3 +140,14 @@ pub mod rows {
         Ok(super::affine_from_rows(&<[[f32; 4]; 4]>::deserialize(d)?))
     }
 }
+
+/// Whether this CPU runs AVX2 (checked once).
+pub fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        static HAS: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        *HAS.get_or_init(|| std::is_x86_feature_detected!("avx2"))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}

@@ -78,6 +78,18 @@ impl Bitmap {
             self.words[i >> 6] &= !m;
         }
     }
+    /// Sets the bits `start..end`, a word at a time.
+    pub fn set_range(&mut self, start: usize, end: usize) {
+        debug_assert!(start <= end && end <= self.len());
+        let mut i = start;
+        while i < end {
+            let (w, b) = (i >> 6, i & 63);
+            let n = (64 - b).min(end - i);
+            let mask = if n == 64 { u64::MAX } else { ((1u64 << n) - 1) << b };
+            self.words[w] |= mask;
+            i += n;
+        }
+    }
     pub fn count(&self) -> usize {
         self.words.iter().map(|w| w.count_ones() as usize).sum()
     }
@@ -226,5 +238,30 @@ impl RankIndex {
         }
         let below = w & ((1u64 << b) - 1);
         Some(self.prefix[i >> 6] as usize + below.count_ones() as usize)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn set_range_sets_exactly_the_range_across_words() {
+        let res = [50, 3, 2];
+        for (start, end) in [
+            (0, 0),
+            (0, 300),
+            (3, 5),
+            (60, 64),
+            (63, 65),
+            (10, 200),
+            (128, 192),
+            (299, 300),
+        ] {
+            let mut b = Bitmap::new(res);
+            b.set_range(start, end);
+            let want = Bitmap::from_fn(res, |i| (start..end).contains(&i));
+            assert_eq!(b, want, "{start}..{end}");
+        }
     }
 }

@@ -150,6 +150,15 @@ impl FeatureCache {
         }
     }
 
+    /// The cached voxels with σ above `floor`.
+    pub fn solid(&self, floor: f32) -> Bitmap {
+        let mut out = Bitmap::new(self.geom.res);
+        for (&v, _) in self.voxels.iter().zip(&self.sigma).filter(|(_, &s)| s > floor) {
+            out.set(v as usize, true);
+        }
+        out
+    }
+
     /// Each row's +x, +y and +z neighbours among the rows and the squared
     /// distances between their unit features, made on first use and kept
     /// (24 bytes a row). The graph cut weighs every neighbour pair of its

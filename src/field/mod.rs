@@ -10,6 +10,7 @@ pub mod geom;
 pub mod grid;
 pub mod io;
 pub mod macro_grid;
+pub mod runs;
 pub mod sh;
 pub mod sparse;
 pub mod vm;

@@ -10,7 +10,7 @@
 //! other seeds (26-connected) are kept. `SegmentParams::connected = false`
 //! keeps the paper's global matching (select every look-alike at once).
 
-use super::grow::{GrowParams, Offsets};
+use crate::field::runs::Runs;
 use crate::field::{Bitmap, FeatureCache};
 use crate::render::{Layer, Scene};
 use glam::Vec3;
@@ -61,29 +61,17 @@ pub fn layer_of<'a>(scene: &'a Scene, cache: &FeatureCache) -> Option<&'a Layer>
 /// seeds).
 pub fn joined_seeds(seed: &Bitmap, anchors: &[u32], radius: isize) -> Option<Bitmap> {
     let res = seed.res();
-    let mut joined = Bitmap::new(res);
-    let mut stack: Vec<usize> = vec![];
-    for &a in anchors {
-        for n in block(res, a as usize, radius) {
-            if seed.get(n) && !joined.get(n) {
-                joined.set(n, true);
-                stack.push(n);
-            }
-        }
-    }
-    if stack.is_empty() {
+    let mut starts: Vec<usize> = anchors
+        .iter()
+        .flat_map(|&a| block(res, a as usize, radius))
+        .filter(|&n| seed.get(n))
+        .collect();
+    if starts.is_empty() {
         return None;
     }
-    let offs = Offsets::new(res, &GrowParams::default());
-    while let Some(v) = stack.pop() {
-        offs.for_each(v, |_, n| {
-            if seed.get(n) && !joined.get(n) {
-                joined.set(n, true);
-                stack.push(n);
-            }
-        });
-    }
-    Some(joined)
+    starts.sort_unstable();
+    starts.dedup();
+    Some(Runs::of(seed).components_of(starts))
 }
 
 /// The voxels of `bits` within `radius` of an anchor, ascending.
