@@ -145,10 +145,26 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     debug_assert_eq!(d_obj.len(), n);
     let unlike: Vec<bool> = d_obj.iter().map(|&d| d > input.unlike).collect();
     // A stroke covers a few hundred voxels of one or two materials.
-    let flags = |set: &[u32]| -> Vec<bool> { input.domain.iter().map(|v| set.binary_search(v).is_ok()).collect() };
+    let mut node_of_row = vec![u32::MAX; cache.len()];
+    for (i, &r) in rows.iter().enumerate() {
+        node_of_row[r] = i as u32;
+    }
+    // Flag the domain nodes of a voxel set (a lookup per voxel of the set,
+    // not a search per domain voxel).
+    let flags = |set: &[u32]| -> Vec<bool> {
+        let mut out = vec![false; n];
+        let nodes = set
+            .iter()
+            .filter_map(|&v| cache.index.slot(v as usize))
+            .map(|r| node_of_row[r]);
+        for i in nodes.filter(|&i| i != u32::MAX) {
+            out[i as usize] = true;
+        }
+        out
+    };
     let (under, under_negative) = (flags(input.hard), flags(input.background_hard));
     let (col_obj, _) = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, None);
-    let edges = neighbour_edges(cache, input.domain, &rows, input.colours, p);
+    let edges = neighbour_edges(cache, input.domain, &rows, &node_of_row, input.colours, p);
     t.edges_ms += ms_since(t0);
     let mut region: Vec<bool> = input.domain.iter().map(|&v| input.region.get(v as usize)).collect();
     let mut changed = false;
@@ -345,19 +361,17 @@ fn background_centres(
     Some(fit(&sample, cache.channels, k, seed, warm))
 }
 
-/// The 6-neighbour pairs of domain voxels (node indices into `domain`)
-/// with their boundary weights λ·w_uv.
+/// The 6-neighbour pairs of domain voxels (node indices into `domain`;
+/// `node_of_row` maps a cache row to its node, or `u32::MAX`) with their
+/// boundary weights λ·w_uv.
 fn neighbour_edges(
     cache: &FeatureCache,
     domain: &[u32],
     rows: &[usize],
+    node_of_row: &[u32],
     colours: &[Vec3],
     p: &CutParams,
 ) -> Vec<(u32, u32, f32)> {
-    let mut node_of_row = vec![u32::MAX; cache.len()];
-    for (i, &r) in rows.iter().enumerate() {
-        node_of_row[r] = i as u32;
-    }
     let neighbours = cache.neighbours();
     // Domain node i and its +x, +y, +z neighbours in the domain.
     let pairs_of = |i: usize, out: &mut Vec<(u32, u32, f32, f32)>| {

@@ -103,11 +103,14 @@ fn flood(cache: &FeatureCache, dist: &mut StrokeDistances, seed: &Bitmap, floor:
                 if touched.get(n) {
                     return;
                 }
+                // Empty and thin voxels are marked too: the flood looks at
+                // each once, not once per solid neighbour (up to 26 rank
+                // lookups for each empty voxel next to a surface).
+                touched.set(n, true);
                 let Some(r) = cache.index.slot(n) else { return };
                 if cache.sigma[r] <= floor {
                     return;
                 }
-                touched.set(n, true);
                 // Keys never decrease along the flood, so the first touch
                 // gives n its bottleneck distance.
                 let d = dist.get(cache, r);
