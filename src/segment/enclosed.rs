@@ -84,14 +84,15 @@ fn pocket_starts(
         .into_par_iter()
         .filter(|&r| unseen_row(r))
         .map(|r| cache.voxels[r] as usize)
-        .filter(|&v| {
-            let mut touches = false;
-            !mask.get(v) && {
-                offs.for_each(v, |_, n| touches |= mask.get(n));
-                touches
-            }
-        })
+        .filter(|&v| !mask.get(v) && touches(mask, offs, v))
         .collect()
+}
+
+/// Whether voxel `v` has a neighbour in `mask`.
+fn touches(mask: &Bitmap, offs: &Offsets, v: usize) -> bool {
+    let mut any = false;
+    offs.for_each(v, |_, n| any |= mask.get(n));
+    any
 }
 
 /// The feature length below which a solid voxel is unseen (see

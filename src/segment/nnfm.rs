@@ -220,7 +220,7 @@ fn lane_dots(block: &[f32], centre: &[f32]) -> [f32; LANES] {
 /// On a CPU with AVX2 the same sums run eight lanes to an instruction
 /// ([`avx2::each_centre_dots`]).
 #[inline(always)]
-fn each_centre_dots(block: &[f32], centres: &Centroids, mut f: impl FnMut(usize, &[f32; LANES])) {
+fn each_centre_dots(block: &[f32], centres: &Centroids, f: impl FnMut(usize, &[f32; LANES])) {
     #[cfg(target_arch = "x86_64")]
     if crate::util::has_avx2() && centres.dim * LANES <= block.len() {
         // SAFETY: the CPU has AVX2, and `block` holds `dim` channels of
@@ -228,6 +228,12 @@ fn each_centre_dots(block: &[f32], centres: &Centroids, mut f: impl FnMut(usize,
         unsafe { avx2::each_centre_dots(block, centres, f) };
         return;
     }
+    portable_each_centre_dots(block, centres, f);
+}
+
+/// [`each_centre_dots`] on any CPU.
+#[inline(always)]
+fn portable_each_centre_dots(block: &[f32], centres: &Centroids, mut f: impl FnMut(usize, &[f32; LANES])) {
     let k = centres.len();
     let quads = k / 4;
     for q in 0..quads {
@@ -627,5 +633,33 @@ mod tests {
         }
         assert!(checked > 0, "some voxels must match");
         assert!(ruled_out > 0, "the pruning path must be exercised");
+    }
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn the_avx2_dots_are_the_portable_dots_bit_for_bit() {
+        if !crate::util::has_avx2() {
+            eprintln!("skipped: this CPU has no AVX2");
+            return;
+        }
+        let mut state = 7u64;
+        let mut rnd = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((state >> 40) as f32 / (1u64 << 24) as f32) - 0.5
+        };
+        // Centre counts around the four-centre passes, several widths.
+        for (k, dim) in [(1, 64), (4, 64), (7, 64), (20, 64), (13, 3), (9, 17)] {
+            let centres = Centroids {
+                dim,
+                data: (0..k * dim).map(|_| rnd()).collect(),
+            };
+            let block: Vec<f32> = (0..dim * LANES).map(|_| rnd() * 40.0).collect();
+            let (mut want, mut got) = (vec![], vec![]);
+            portable_each_centre_dots(&block, &centres, |j, a| want.push((j, a.map(f32::to_bits))));
+            // SAFETY: checked above; the block holds dim × LANES values.
+            unsafe { avx2::each_centre_dots(&block, &centres, |j, a| got.push((j, a.map(f32::to_bits)))) };
+            assert_eq!(got, want, "k {k}, dim {dim}");
+        }
     }
 }
