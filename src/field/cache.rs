@@ -41,6 +41,8 @@ pub struct FeatureCache {
     coarse: std::sync::OnceLock<Option<Box<FeatureCache>>>,
     /// See [`Self::neighbours`].
     neighbours: std::sync::OnceLock<Vec<Neighbours>>,
+    /// See [`Self::solid`]: the last floor asked for and its bitmap.
+    solid: std::sync::Mutex<Option<(u32, std::sync::Arc<Bitmap>)>>,
 }
 
 /// A cache row's neighbours one voxel along +x, +y and +z: their rows
@@ -147,16 +149,27 @@ impl FeatureCache {
             voxel_size,
             coarse: std::sync::OnceLock::new(),
             neighbours: std::sync::OnceLock::new(),
+            solid: std::sync::Mutex::new(None),
         }
     }
 
-    /// The cached voxels with σ above `floor`.
-    pub fn solid(&self, floor: f32) -> Bitmap {
-        let mut out = Bitmap::new(self.geom.res);
-        for (&v, _) in self.voxels.iter().zip(&self.sigma).filter(|(_, &s)| s > floor) {
-            out.set(v as usize, true);
+    /// The cached voxels with σ above `floor`, kept for the last floor
+    /// asked for: every stroke on a coarse copy maps its mask back through
+    /// it, and building it walks every row (8 ms on the fern).
+    pub fn solid(&self, floor: f32) -> std::sync::Arc<Bitmap> {
+        let mut memo = self.solid.lock().unwrap_or_else(|e| e.into_inner());
+        match &*memo {
+            Some((bits, b)) if *bits == floor.to_bits() => b.clone(),
+            _ => {
+                let mut out = Bitmap::new(self.geom.res);
+                for (&v, _) in self.voxels.iter().zip(&self.sigma).filter(|(_, &s)| s > floor) {
+                    out.set(v as usize, true);
+                }
+                let out = std::sync::Arc::new(out);
+                *memo = Some((floor.to_bits(), out.clone()));
+                out
+            }
         }
-        out
     }
 
     /// Each row's +x, +y and +z neighbours among the rows and the squared
@@ -238,6 +251,10 @@ impl FeatureCache {
                 .neighbours
                 .get()
                 .map_or(0, |n| n.len() * std::mem::size_of::<Neighbours>())
+            + self
+                .solid
+                .lock()
+                .map_or(0, |m| m.as_ref().map_or(0, |(_, b)| b.words().len() * 8))
     }
 }
 
@@ -297,5 +314,29 @@ mod tests {
         // Some pairs exist and some are missing (the empty plane).
         assert!(pairs > 0 && pairs < 3 * cache.len());
         assert!(cache.memory_bytes() >= cache.len() * std::mem::size_of::<Neighbours>());
+    }
+
+    #[test]
+    fn the_solid_bitmap_follows_the_floor_asked_for() {
+        // σ rises along x: each floor leaves a different share solid.
+        let field = FieldBuilder::new(Aabb::new(Vec3::ZERO, Vec3::new(7.0, 2.0, 2.0)), [8, 3, 3]).build(
+            |p| p.x,
+            |_| Vec3::ONE,
+            Some((2, &|_: Vec3, out: &mut [f32]| out.fill(1.0))),
+        );
+        let cache = FeatureCache::build(&field).unwrap();
+        let want = |floor: f32| {
+            Bitmap::from_fn(cache.geom.res, |v| {
+                cache.index.slot(v).is_some_and(|r| cache.sigma[r] > floor)
+            })
+        };
+        let mut sigmas = cache.sigma.clone();
+        sigmas.sort_by(f32::total_cmp);
+        let at = |q: usize| sigmas[q * (sigmas.len() - 1) / 4];
+        for floor in [at(2), at(1), at(2), at(3), at(3)] {
+            let got = cache.solid(floor);
+            assert_eq!(*got, want(floor), "floor {floor}");
+            assert!(got.any() && got.count() < cache.len());
+        }
     }
 }

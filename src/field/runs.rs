@@ -139,6 +139,7 @@ impl Runs {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::util::SplitMix64;
 
     /// Components voxel by voxel, 26 neighbours each.
     fn reference(bits: &Bitmap, starts: &[usize]) -> Bitmap {
@@ -170,23 +171,12 @@ mod tests {
         // Random bitmaps of several densities on grids whose rows are not
         // whole words (runs cross word boundaries and rows touch the grid's
         // faces), from several starts.
-        let mut state = 0x9E37_79B9_7F4A_7C15u64;
-        let mut rnd = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            state
-        };
-        for (res, density) in [
-            ([13, 7, 5], 30u64),
-            ([70, 9, 6], 45),
-            ([3, 3, 3], 50),
-            ([97, 4, 11], 60),
-        ] {
+        let mut rng = SplitMix64::new(9);
+        for (res, density) in [([13, 7, 5], 30), ([70, 9, 6], 45), ([3, 3, 3], 50), ([97, 4, 11], 60)] {
             let n = res[0] * res[1] * res[2];
             let mut bits = Bitmap::new(res);
             for v in 0..n {
-                if rnd() % 100 < density {
+                if rng.below(100) < density {
                     bits.set(v, true);
                 }
             }
@@ -196,7 +186,7 @@ mod tests {
                 bits.count()
             );
             for _ in 0..5 {
-                let starts: Vec<usize> = (0..3).map(|_| rnd() as usize % n).collect();
+                let starts: Vec<usize> = (0..3).map(|_| rng.below(n)).collect();
                 let got = runs.components_of(starts.iter().copied());
                 assert_eq!(got, reference(&bits, &starts), "{res:?} {density}% from {starts:?}");
             }

@@ -144,7 +144,6 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     let d_obj = input.object_distance;
     debug_assert_eq!(d_obj.len(), n);
     let unlike: Vec<bool> = d_obj.iter().map(|&d| d > input.unlike).collect();
-    // A stroke covers a few hundred voxels of one or two materials.
     let mut node_of_row = vec![u32::MAX; cache.len()];
     for (i, &r) in rows.iter().enumerate() {
         node_of_row[r] = i as u32;
@@ -163,6 +162,7 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         out
     };
     let (under, under_negative) = (flags(input.hard), flags(input.background_hard));
+    // A stroke covers a few hundred voxels of one or two materials.
     let (col_obj, _) = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, None);
     let edges = neighbour_edges(cache, input.domain, &rows, &node_of_row, input.colours, p);
     t.edges_ms += ms_since(t0);

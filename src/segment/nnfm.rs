@@ -641,13 +641,8 @@ mod tests {
             eprintln!("skipped: this CPU has no AVX2");
             return;
         }
-        let mut state = 7u64;
-        let mut rnd = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((state >> 40) as f32 / (1u64 << 24) as f32) - 0.5
-        };
+        let mut rng = SplitMix64::new(7);
+        let mut rnd = move || rng.unit() as f32 - 0.5;
         // Centre counts around the four-centre passes, several widths.
         for (k, dim) in [(1, 64), (4, 64), (7, 64), (20, 64), (13, 3), (9, 17)] {
             let centres = Centroids {
