@@ -201,6 +201,8 @@ pub fn cut_stage_table(r: &FieldStrokeReport) -> Table {
     let mut t = Table::new(&[
         "stroke",
         "rounds",
+        "nodes",
+        "pairs",
         "edges",
         "bg fit",
         "bg distances",
@@ -212,6 +214,8 @@ pub fn cut_stage_table(r: &FieldStrokeReport) -> Table {
         t.row(vec![
             format!("{i} {}", s.polarity),
             c.rounds.to_string(),
+            c.nodes.to_string(),
+            c.edges.to_string(),
             format!("{:.1}", c.edges_ms),
             format!("{:.1}", c.fit_ms),
             format!("{:.1}", c.distance_ms),

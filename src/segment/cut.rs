@@ -105,6 +105,9 @@ pub struct CutTimings {
     /// Building the graph and max-flow.
     pub flow_ms: f64,
     pub rounds: usize,
+    /// The graph's size: domain voxels and neighbour pairs.
+    pub nodes: usize,
+    pub edges: usize,
 }
 
 /// What the cut works on.
@@ -166,6 +169,8 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     let (col_obj, _) = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, None);
     let edges = neighbour_edges(cache, input.domain, &rows, &node_of_row, input.colours, p);
     t.edges_ms += ms_since(t0);
+    t.nodes += n;
+    t.edges += edges.len();
     let mut region: Vec<bool> = input.domain.iter().map(|&v| input.region.get(v as usize)).collect();
     let mut changed = false;
     let mut graph: Option<Graph> = None;

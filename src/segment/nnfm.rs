@@ -305,6 +305,24 @@ mod avx2 {
     }
 }
 
+/// min_k ‖φ̂ − c_k‖² of the `LANES` rows in `block` (channel-major), each
+/// as ‖φ̂‖² − 2 φ·c_k/‖φ‖ + ‖c_k‖² from its 1/‖φ‖ in `inv` (0 for a zero
+/// feature, whose ‖φ̂‖² is 0). The lanes' norms are read once per block,
+/// not once per centre: per centre the update is then eight independent
+/// lanes that vectorise (it had cost half as much as the dot products).
+#[inline(always)]
+fn lane_min_distances(block: &[f32], centres: &Centroids, norms: &[f32], inv: &[f32; LANES]) -> [f32; LANES] {
+    let self_n: [f32; LANES] = inv.map(|i| if i > 0.0 { 1.0 } else { 0.0 });
+    let mut best = [f32::INFINITY; LANES];
+    each_centre_dots(block, centres, |k, acc| {
+        let nk = norms[k];
+        for l in 0..LANES {
+            best[l] = best[l].min((self_n[l] - 2.0 * acc[l] * inv[l] + nk).max(0.0));
+        }
+    });
+    best
+}
+
 /// The exact distances min_k ‖φ̂ − c_k‖², as ‖φ̂‖² − 2 φ̂·c_k + ‖c_k‖²,
 /// bit for bit those of [`CentreSet::min_distance`].
 struct Exact<'a> {
@@ -344,13 +362,8 @@ impl Exact<'_> {
                 block[ch * LANES + l] = v;
             }
         }
-        let mut best = [f32::INFINITY; LANES];
-        each_centre_dots(block, self.centres, |k, acc| {
-            for l in 0..LANES {
-                best[l] = best[l].min(self.distance(acc[l], self.cache.inv_norm[r0 + l], k));
-            }
-        });
-        best
+        let inv: [f32; LANES] = std::array::from_fn(|l| self.cache.inv_norm[r0 + l]);
+        lane_min_distances(block, self.centres, self.norms, &inv)
     }
 }
 
@@ -426,15 +439,8 @@ fn min_distances_of(set: &CentreSet, cache: &FeatureCache, chunk: &[usize]) -> V
                 block[ch * LANES + l] = v;
             }
         }
-        let mut best = [f32::INFINITY; LANES];
-        each_centre_dots(&block, &set.centres, |k, acc| {
-            for (l, &r) in group.iter().enumerate() {
-                let inv = cache.inv_norm[r];
-                let self_n = if inv > 0.0 { 1.0 } else { 0.0 };
-                best[l] = best[l].min((self_n - 2.0 * acc[l] * inv + set.norms[k]).max(0.0));
-            }
-        });
-        out.extend_from_slice(&best);
+        let inv: [f32; LANES] = std::array::from_fn(|l| cache.inv_norm[group[l]]);
+        out.extend_from_slice(&lane_min_distances(&block, &set.centres, &set.norms, &inv));
     }
     out
 }
