@@ -208,10 +208,7 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         // region terms and resume from the last round's flow (voxels under
         // the strokes stay tied to their side).
         let g = graph.get_or_insert_with(|| {
-            let mut g = Graph::new(n, edges.len());
-            for &(i, j, w) in &edges {
-                g.add_edge(i as usize, j as usize, w, w);
-            }
+            let mut g = Graph::from_edges(n, &edges);
             for i in (0..n).filter(|&i| under_negative[i] || under[i]) {
                 let hard = if under_negative[i] { (0.0, HARD) } else { (HARD, 0.0) };
                 g.set_terminal(i, hard.0, hard.1);
