@@ -747,7 +747,6 @@ mod tests {
         }
     }
 
-    /// The 4-neighbour edges of a `w × h` grid, random capacities each way.
     #[test]
     fn a_graph_made_from_edges_cuts_as_one_built_arc_by_arc() {
         // The same arcs in the same order per node: the same flow to the
@@ -783,6 +782,7 @@ mod tests {
         }
     }
 
+    /// The 4-neighbour edges of a `w × h` grid, random capacities each way.
     fn grid_edges(w: usize, h: usize, rng: &mut SplitMix64) -> Vec<(usize, usize, f32, f32)> {
         let mut edges = vec![];
         for y in 0..h {
