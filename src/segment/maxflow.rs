@@ -113,48 +113,12 @@ impl Graph {
 
     /// A graph of `nodes` nodes and the undirected `edges` (i, j,
     /// capacity both ways), its arcs laid out as [`Graph::freeze`] lays
-    /// them, directly: the copy `freeze` makes of a large graph's arcs
-    /// cost as much as the max-flow on lego (10 ms, most of it the kernel
-    /// zeroing fresh pages).
+    /// them, directly: building arc pairs and then laying them out copies
+    /// a large graph's arcs, which cost as much as the max-flow on lego
+    /// (10 ms, most of it the kernel zeroing fresh pages).
     pub fn from_edges(nodes: usize, edges: &[(u32, u32, f32)]) -> Self {
         let mut g = Graph::new(nodes, 0);
-        let mut end = vec![0u32; nodes];
-        for &(i, j, _) in edges {
-            end[i as usize] += 1;
-            end[j as usize] += 1;
-        }
-        let mut at = 0u32;
-        for (n, e) in g.nodes.iter_mut().zip(&mut end) {
-            n.first = at;
-            at += *e;
-            n.last = at;
-            *e = at;
-        }
-        let mut arcs = vec![
-            Arc {
-                head: 0,
-                sister: 0,
-                r_cap: 0.0
-            };
-            at as usize
-        ];
-        for &(i, j, w) in edges {
-            debug_assert!(i != j && w >= 0.0);
-            end[i as usize] -= 1;
-            end[j as usize] -= 1;
-            let (a, b) = (end[i as usize], end[j as usize]);
-            arcs[a as usize] = Arc {
-                head: j,
-                sister: b,
-                r_cap: w,
-            };
-            arcs[b as usize] = Arc {
-                head: i,
-                sister: a,
-                r_cap: w,
-            };
-        }
-        g.arcs = arcs;
+        g.arcs = g.lay_out(|| edges.iter().map(|&(i, j, w)| (i, j, w, w)));
         g.frozen = true;
         g
     }
@@ -224,24 +188,36 @@ impl Graph {
         });
     }
 
-    /// Lays every node's outgoing arcs side by side, each node's in the
-    /// reverse of the order they were added (the order a list through the
-    /// nodes' last arcs gave before, so the searches visit them as they
-    /// did and the flow and the cut are the same to the bit): the trees
-    /// scan a node's arcs over and over, and in the order of addition a
-    /// grid voxel's six arcs lay in three or four distant places. On the
-    /// fern's trunk stroke the two rounds' max-flow fell from 118 + 89 ms
-    /// to 95 + 63 ms.
+    /// Lays every node's outgoing arcs side by side (see
+    /// [`Graph::lay_out`]) before the first max-flow.
     fn freeze(&mut self) {
         if self.frozen {
             return;
         }
         self.frozen = true;
-        // Arcs come in pairs (a, a ^ 1) until now: a's tail is a ^ 1's head.
-        let tail = |arcs: &[Arc], a: usize| arcs[a ^ 1].head as usize;
+        // Until now arcs come in pairs (a, a ^ 1): the edge a's tail → head.
+        let pairs = std::mem::take(&mut self.arcs);
+        self.arcs = self.lay_out(|| {
+            pairs
+                .chunks_exact(2)
+                .map(|p| (p[1].head, p[0].head, p[0].r_cap, p[1].r_cap))
+        });
+    }
+
+    /// The arcs of `edges` (i, j, capacity i → j, capacity j → i; the
+    /// closure lists them, twice), every node's outgoing arcs side by side
+    /// in `first..last`, each node's in the reverse of the order of its
+    /// edges: the order the per-node arc lists gave before, so the searches
+    /// visit them as they did and the flow and the cut are the same to the
+    /// bit. The trees scan a node's arcs over and over, and in the order
+    /// of addition a grid voxel's six arcs lay in three or four distant
+    /// places: on the fern's trunk stroke the two rounds' max-flow fell
+    /// from 118 + 89 ms to 95 + 63 ms.
+    fn lay_out<I: Iterator<Item = (u32, u32, f32, f32)>>(&mut self, edges: impl Fn() -> I) -> Vec<Arc> {
         let mut end = vec![0u32; self.nodes.len()];
-        for a in 0..self.arcs.len() {
-            end[tail(&self.arcs, a)] += 1;
+        for (i, j, _, _) in edges() {
+            end[i as usize] += 1;
+            end[j as usize] += 1;
         }
         let mut at = 0u32;
         for (n, e) in self.nodes.iter_mut().zip(&mut end) {
@@ -250,28 +226,29 @@ impl Graph {
             n.last = at;
             *e = at;
         }
-        let mut new_of = vec![0u32; self.arcs.len()];
-        for (a, slot) in new_of.iter_mut().enumerate() {
-            let e = &mut end[tail(&self.arcs, a)];
-            *e -= 1;
-            *slot = *e;
-        }
-        let mut arcs = vec![
-            Arc {
-                head: 0,
-                sister: 0,
-                r_cap: 0.0
+        let empty = Arc {
+            head: 0,
+            sister: 0,
+            r_cap: 0.0,
+        };
+        let mut arcs = vec![empty; at as usize];
+        for (i, j, cap, rev_cap) in edges() {
+            debug_assert!(i != j && cap >= 0.0 && rev_cap >= 0.0);
+            end[i as usize] -= 1;
+            end[j as usize] -= 1;
+            let (a, b) = (end[i as usize], end[j as usize]);
+            arcs[a as usize] = Arc {
+                head: j,
+                sister: b,
+                r_cap: cap,
             };
-            self.arcs.len()
-        ];
-        for (a, arc) in self.arcs.iter().enumerate() {
-            arcs[new_of[a] as usize] = Arc {
-                head: arc.head,
-                sister: new_of[a ^ 1],
-                r_cap: arc.r_cap,
+            arcs[b as usize] = Arc {
+                head: i,
+                sister: a,
+                r_cap: rev_cap,
             };
         }
-        self.arcs = arcs;
+        arcs
     }
 
     /// Runs max-flow; returns the flow, which equals the minimum cut's
