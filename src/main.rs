@@ -75,13 +75,15 @@ enum Memory {
     Release,
     /// Segmenting (editor, scripts, eval, segmentation benchmarks): every
     /// stroke allocates and frees the same working set (the cut's graph,
-    /// distances, flags: tens of MB), and with `Release` each stroke paid
-    /// for it again in page faults (16k per lego stroke, the kernel
-    /// zeroing 64 MB), and glibc trimmed its heaps after every free of
-    /// 128 kB. Buffers up to 16 MB come from the heaps, which keep up to
-    /// 64 MB free: on lego's 320³ stroke the faults fall to ~0 and the
-    /// stroke takes 123–143 ms instead of 149–152 (same machine, runs
-    /// interleaved), with the same peak memory.
+    /// distances, flags: tens of MB). With `Release` each stroke paid for
+    /// it again in page faults (16k per lego stroke: the kernel zeroing
+    /// 64 MB), also because glibc trims a heap whenever 128 kB lie free
+    /// at its top. Buffers up to 8 MB come from the heaps here, which
+    /// keep up to 16 MB free: lego's 320³ stroke faults 2.5k pages instead
+    /// of 16k and takes 119–153 ms (median 141) instead of 145–180
+    /// (median 175; six runs each, interleaved), for 40 MB more peak
+    /// memory in the editor's fern walk (2.30 GB against 2.26). 16 MB / 64
+    /// MB were no faster and cost 110 MB.
     Reuse,
 }
 
@@ -103,7 +105,7 @@ impl Memory {
     fn apply(self) {
         let (mmap, trim) = match self {
             Memory::Release => (1 << 20, None),
-            Memory::Reuse => (16 << 20, Some(64 << 20)),
+            Memory::Reuse => (8 << 20, Some(16 << 20)),
         };
         // SAFETY: malloc tuning calls at startup, before any thread exists.
         unsafe {
