@@ -244,6 +244,13 @@ pub struct EditorPlugin {
 
 impl Plugin for EditorPlugin {
     fn build(&self, app: &mut App) {
+        // Frames on input, on change, or at least every `IDLE_FRAME`: an
+        // editor left alone draws a few frames a second, not 20.
+        app.insert_resource(bevy::winit::WinitSettings {
+            focused_mode: bevy::winit::UpdateMode::reactive(IDLE_FRAME),
+            unfocused_mode: bevy::winit::UpdateMode::reactive_low_power(IDLE_FRAME),
+        })
+        .add_systems(Last, redraw_while_the_camera_moves);
         app.add_plugins((EditorCorePlugin, RayMarchPlugin, PanOrbitCameraPlugin))
             .configure_sets(Update, EditorSystems::Input.before(EditorSystems::Model))
             .add_systems(Startup, spawn_camera)
@@ -269,8 +276,30 @@ impl Plugin for EditorPlugin {
         if self.ui {
             app.add_plugins(EguiPlugin::default())
                 .add_systems(Startup, ui::spawn_ui_camera)
+                .add_systems(
+                    PreUpdate,
+                    ui::drop_unchanged_modifiers
+                        .after(bevy_egui::EguiPreUpdateSet::ProcessInput)
+                        .before(bevy_egui::EguiPreUpdateSet::BeginPass),
+                )
                 .add_systems(EguiPrimaryContextPass, ui::panels);
         }
+    }
+}
+
+/// The longest the editor waits for the next frame when nothing asks for
+/// one: timers (the view's refinement after a move, a request's progress)
+/// advance at least this often.
+const IDLE_FRAME: std::time::Duration = std::time::Duration::from_millis(250);
+
+/// Asks for the next frame while the view camera moves (the orbit camera
+/// eases out after the mouse lets go, with no input to wake the loop).
+fn redraw_while_the_camera_moves(
+    moved: Query<(), (With<EditorCamera>, Changed<Transform>)>,
+    mut redraw: MessageWriter<bevy::window::RequestRedraw>,
+) {
+    if !moved.is_empty() {
+        redraw.write(bevy::window::RequestRedraw);
     }
 }
 
