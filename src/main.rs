@@ -63,7 +63,7 @@ fn restore_sigpipe() {
 fn restore_sigpipe() {}
 
 /// How the C allocator keeps memory, by what a command does most.
-#[derive(Clone, Copy, PartialEq)]
+#[derive(Clone, Copy)]
 enum Memory {
     /// Training and importing: buffers of 1 MB and more (decoded photos,
     /// grids, gradient arrays) are mapped on their own and go back to the

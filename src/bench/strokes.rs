@@ -215,7 +215,7 @@ pub fn cut_stage_table(r: &FieldStrokeReport) -> Table {
             format!("{i} {}", s.polarity),
             c.rounds.to_string(),
             c.nodes.to_string(),
-            c.edges.to_string(),
+            c.pairs.to_string(),
             format!("{:.1}", c.edges_ms),
             format!("{:.1}", c.fit_ms),
             format!("{:.1}", c.distance_ms),

@@ -107,7 +107,7 @@ pub struct CutTimings {
     pub rounds: usize,
     /// The graph's size: domain voxels and neighbour pairs.
     pub nodes: usize,
-    pub edges: usize,
+    pub pairs: usize,
 }
 
 /// What the cut works on.
@@ -170,7 +170,7 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     let edges = neighbour_edges(cache, input.domain, &rows, &node_of_row, input.colours, p);
     t.edges_ms += ms_since(t0);
     t.nodes += n;
-    t.edges += edges.len();
+    t.pairs += edges.len();
     let mut region: Vec<bool> = input.domain.iter().map(|&v| input.region.get(v as usize)).collect();
     let mut changed = false;
     let mut graph: Option<Graph> = None;
