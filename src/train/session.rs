@@ -29,7 +29,7 @@ pub const DEFAULT_FEATURE_DIMS: usize = 64;
 /// at the automatic input size (size 0); `None` when neither is found.
 pub fn default_teacher() -> Result<Option<TeacherSource>> {
     super::vit::find_default()
-        .map(|p| TeacherSource::from_path(&p, super::vit::DEFAULT_OUTPUT, 0))
+        .map(|p| TeacherSource::from_path(&p, super::vit::DEFAULT_OUTPUT, 0, 1))
         .transpose()
 }
 

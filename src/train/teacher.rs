@@ -204,8 +204,15 @@ pub fn channels_last(planar: &[f32], channels: usize) -> Vec<f32> {
 #[derive(Clone, Debug, PartialEq)]
 pub enum TeacherSource {
     /// An ONNX ViT run on every training image ([`super::vit`]); `size` is
-    /// the long side of its input (0 = automatic, [`super::vit::input_dims`]).
-    Onnx { path: PathBuf, output: String, size: u32 },
+    /// the long side of its input (0 = automatic, [`super::vit::input_dims`]);
+    /// `shifts` > 1 runs it on `shifts²` inputs moved by fractions of a
+    /// patch for a map that many times as dense ([`super::vit::Vit::run_dense`]).
+    Onnx {
+        path: PathBuf,
+        output: String,
+        size: u32,
+        shifts: u32,
+    },
     /// A folder of precomputed maps, one `.npy` / `.npz` per image named
     /// after it (`r_0.npy` or `r_0.png.npy`), `[h, w, C]` or `[C, h, w]`
     /// (the larger of the first and last sizes is the channel axis), f32 or
@@ -215,7 +222,12 @@ pub enum TeacherSource {
 
 impl TeacherSource {
     /// A folder means precomputed maps, a file an ONNX model.
-    pub fn from_path(path: &Path, output: &str, size: u32) -> Result<TeacherSource> {
+    pub fn from_path(path: &Path, output: &str, size: u32, shifts: u32) -> Result<TeacherSource> {
+        crate::ensure_within!(
+            OutOfRange,
+            (1..=4).contains(&shifts),
+            "teacher shifts {shifts} is out of range 1..=4"
+        );
         if path.is_dir() {
             Ok(TeacherSource::Precomputed(path.to_path_buf()))
         } else if path.is_file() {
@@ -223,6 +235,7 @@ impl TeacherSource {
                 path: path.to_path_buf(),
                 output: output.to_string(),
                 size,
+                shifts,
             })
         } else {
             Err(Error::bad_file(
@@ -234,14 +247,24 @@ impl TeacherSource {
 
     fn describe(&self) -> String {
         match self {
-            TeacherSource::Onnx { path, output, size } => {
+            TeacherSource::Onnx {
+                path,
+                output,
+                size,
+                shifts,
+            } => {
                 let (len, modified) = file_stamp(path);
                 let size = match size {
                     0 => format!("auto {}..{}", super::vit::AUTO_MIN_SIDE, super::vit::AUTO_MAX_SIDE),
                     s => s.to_string(),
                 };
+                // One run per image keeps the key it always had (caches stay valid).
+                let shifts = match shifts {
+                    1 => String::new(),
+                    s => format!(" shifts {s}"),
+                };
                 format!(
-                    "onnx {} ({len} bytes, modified {modified}) output {output} size {size}",
+                    "onnx {} ({len} bytes, modified {modified}) output {output} size {size}{shifts}",
                     path.display()
                 )
             }
@@ -307,7 +330,12 @@ pub fn teacher_features(
         return Ok((maps, report));
     }
     let raw = match source {
-        TeacherSource::Onnx { path, output, size } => {
+        TeacherSource::Onnx {
+            path,
+            output,
+            size,
+            shifts,
+        } => {
             // One prepared model per input size (captures rarely mix sizes).
             let mut vits: Vec<super::vit::Vit> = Vec::new();
             let mut maps = Vec::with_capacity(images.len());
@@ -320,7 +348,7 @@ pub fn teacher_features(
                         vits.len() - 1
                     }
                 };
-                maps.push(vits[k].run(img)?);
+                maps.push(vits[k].run_dense(img, *shifts)?);
                 progress(i + 1, images.len());
             }
             maps

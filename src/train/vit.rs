@@ -77,8 +77,40 @@ impl Vit {
     /// Features of one image: resized to the input size, normalised, run;
     /// the token grid covers the whole image.
     pub fn run(&self, img: &Image) -> Result<FeatureMap> {
+        self.run_shifted(img, [0.0, 0.0])
+    }
+
+    /// Features of one image on a grid `shifts` times as dense as the
+    /// model's tokens in each direction: the model runs on `shifts²` copies
+    /// of the input moved by fractions of a patch, and their token grids are
+    /// interleaved (the overlapping patches of Amir et al., "Deep ViT
+    /// Features as Dense Visual Descriptors", without touching the model).
+    /// Each token still sees a whole patch at the model's scale, so the
+    /// features keep their meaning (an enlarged input changes it) while
+    /// object edges are located `shifts` times more finely. 1 = [`Vit::run`].
+    pub fn run_dense(&self, img: &Image, shifts: u32) -> Result<FeatureMap> {
+        let f = shifts.max(1) as usize;
+        if f == 1 {
+            return self.run(img);
+        }
+        let step = PATCH as f32 / f as f32;
+        let mut runs = Vec::with_capacity(f * f);
+        for b in 0..f {
+            for a in 0..f {
+                // Token i of this run is centred on (i + a/f + 1/(2f)) patches,
+                // so dense cell f·i + a is centred on (cell + ½) / f patches.
+                let offset = |k: usize| step * (k as f32 - (f as f32 - 1.0) / 2.0);
+                runs.push(self.run_shifted(img, [offset(a), offset(b)])?);
+            }
+        }
+        Ok(interleave(&runs, f))
+    }
+
+    /// [`Vit::run`] on the input moved by `offset` input pixels (input pixel
+    /// x shows what x + offset showed; the image's edge pixels extend it).
+    fn run_shifted(&self, img: &Image, offset: [f32; 2]) -> Result<FeatureMap> {
         let [w, h] = self.dims.map(|d| d as usize);
-        let input = Tensor::from_shape(&[1, 3, h, w], &preprocess(img, self.dims))
+        let input = Tensor::from_shape(&[1, 3, h, w], &preprocess(img, self.dims, offset))
             .map_err(|e| Error::invalid(format!("teacher input: {e}")))?;
         let out = self
             .plan
@@ -125,18 +157,46 @@ pub fn input_dims(size: u32, width: u32, height: u32) -> [u32; 2] {
     [round(width as f32 * scale), round(height as f32 * scale)]
 }
 
-/// Bilinear resize to `dims` (width, height), ImageNet normalisation,
-/// planar CHW.
-pub fn preprocess(img: &Image, dims: [u32; 2]) -> Vec<f32> {
+/// The token maps of `f × f` shifted runs (row-major by shift, x fastest)
+/// interleaved into one map `f` times as dense: cell (f·i + a, f·j + b) is
+/// token (i, j) of run (a, b).
+fn interleave(runs: &[FeatureMap], f: usize) -> FeatureMap {
+    let first = &runs[0];
+    let (tw, th) = (first.width, first.height);
+    let c = first.data.len() / (tw * th);
+    let (dw, dh) = (tw * f, th * f);
+    let mut data = vec![0.0f32; dw * dh * c];
+    for (r, run) in runs.iter().enumerate() {
+        let (a, b) = (r % f, r / f);
+        for j in 0..th {
+            for i in 0..tw {
+                let dst = ((f * j + b) * dw + f * i + a) * c;
+                let src = (j * tw + i) * c;
+                data[dst..dst + c].copy_from_slice(&run.data[src..src + c]);
+            }
+        }
+    }
+    FeatureMap {
+        width: dw,
+        height: dh,
+        data,
+        ..*first
+    }
+}
+
+/// Bilinear resize to `dims` (width, height) with the content moved by
+/// `offset` output pixels (pixel x shows what x + offset would), ImageNet
+/// normalisation, planar CHW.
+pub fn preprocess(img: &Image, dims: [u32; 2], offset: [f32; 2]) -> Vec<f32> {
     let [sw, sh] = dims.map(|d| d as usize);
     let (w, h) = (img.width as usize, img.height as usize);
     let mut out = vec![0.0f32; 3 * sw * sh];
     for y in 0..sh {
-        let v = ((y as f32 + 0.5) * h as f32 / sh as f32 - 0.5).clamp(0.0, (h - 1) as f32);
+        let v = ((y as f32 + 0.5 + offset[1]) * h as f32 / sh as f32 - 0.5).clamp(0.0, (h - 1) as f32);
         let (y0, fy) = (v as usize, v.fract());
         let y1 = (y0 + 1).min(h - 1);
         for x in 0..sw {
-            let u = ((x as f32 + 0.5) * w as f32 / sw as f32 - 0.5).clamp(0.0, (w - 1) as f32);
+            let u = ((x as f32 + 0.5 + offset[0]) * w as f32 / sw as f32 - 0.5).clamp(0.0, (w - 1) as f32);
             let (x0, fx) = (u as usize, u.fract());
             let x1 = (x0 + 1).min(w - 1);
             for c in 0..3 {
@@ -271,8 +331,48 @@ mod tests {
             rgb: [0.485f32, 0.456, 0.406].repeat(15),
             alpha: None,
         };
-        let x = preprocess(&img, [28, 14]);
+        let x = preprocess(&img, [28, 14], [0.0, 0.0]);
         assert_eq!(x.len(), 3 * 28 * 14);
         assert!(x.iter().all(|v| v.abs() < 1e-5), "ImageNet mean maps to zero");
+    }
+
+    #[test]
+    fn an_offset_moves_the_content_by_whole_pixels() {
+        // A 6×2 horizontal ramp at its own size: pixel x has value x / 10.
+        let img = Image {
+            width: 6,
+            height: 2,
+            rgb: (0..12).flat_map(|i| [(i % 6) as f32 / 10.0; 3]).collect(),
+            alpha: None,
+        };
+        let plain = preprocess(&img, [6, 2], [0.0, 0.0]);
+        let moved = preprocess(&img, [6, 2], [2.0, 0.0]);
+        // Red channel, first row: pixel x now shows x + 2, the edge extends.
+        for x in 0..6 {
+            assert!((moved[x] - plain[(x + 2).min(5)]).abs() < 1e-6, "x = {x}");
+        }
+        let half = preprocess(&img, [6, 2], [0.5, 0.0]);
+        assert!(
+            (half[1] - (plain[1] + plain[2]) / 2.0).abs() < 1e-6,
+            "bilinear between pixels"
+        );
+    }
+
+    #[test]
+    fn shifted_runs_interleave_into_a_denser_map() {
+        // Four 2×1 runs of one channel: run r's token i holds 10r + i.
+        let runs: Vec<FeatureMap> = (0..4)
+            .map(|r| FeatureMap {
+                width: 2,
+                height: 1,
+                image_width: 28,
+                image_height: 14,
+                data: vec![10.0 * r as f32, 10.0 * r as f32 + 1.0],
+            })
+            .collect();
+        let m = interleave(&runs, 2);
+        assert_eq!((m.width, m.height, m.image_width, m.image_height), (4, 2, 28, 14));
+        // Row 0: runs (a = 0, b = 0) and (1, 0) alternate; row 1: (0, 1), (1, 1).
+        assert_eq!(m.data, vec![0.0, 10.0, 1.0, 11.0, 20.0, 30.0, 21.0, 31.0]);
     }
 }
