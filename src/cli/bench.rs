@@ -63,6 +63,10 @@ pub struct QualityArgs {
     /// Teacher input size, long side in pixels (default: `isrf train`'s).
     #[arg(long, default_value_t = 0)]
     pub teacher_size: u32,
+    /// Shifted teacher runs per axis (`isrf train --teacher-shifts`; the
+    /// renders get NeRF-synthetic's default, 1).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=4))]
+    pub teacher_shifts: u32,
     /// σ of the image-guided upsampling of teacher maps (0: bilinear;
     /// default: `isrf train`'s).
     #[arg(long)]
@@ -371,6 +375,7 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         negatives: a.negatives,
         params: a.params.params()?,
         teacher_size: a.teacher_size,
+        teacher_shifts: a.teacher_shifts,
         feature_guide: a.feature_guide,
         feature_res: a.feature_res,
         diagnose: a.diagnose,

