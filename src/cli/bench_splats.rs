@@ -62,8 +62,9 @@ pub struct SplatArgs {
     /// Long side of the teacher's input (0: automatic).
     #[arg(long, default_value_t = 448)]
     pub teacher_size: u32,
-    /// Shifted teacher runs per axis (`isrf train --teacher-shifts`).
-    #[arg(long, default_value_t = 1)]
+    /// Shifted teacher runs per axis (`--teacher-shifts`; default: what
+    /// `isrf features --orbit` runs).
+    #[arg(long, default_value_t = isrf::train::ORBIT_TEACHER_SHIFTS)]
     pub teacher_shifts: u32,
     /// Work folder for the .ply and field files.
     #[arg(long, default_value = "target/bench-splats")]

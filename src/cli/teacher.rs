@@ -24,7 +24,7 @@ pub struct TeacherArgs {
     /// patch and interleave their tokens: a map N times as dense in each
     /// direction at the same scale (N² runs per image), 1..=4. Default: 2
     /// for photos (LLFF, COLMAP, nerfstudio; the automatic input is then
-    /// 448 pixels), 1 for NeRF-synthetic renders and orbit views.
+    /// 448 pixels) and orbit views, 1 for NeRF-synthetic renders.
     #[arg(long)]
     pub teacher_shifts: Option<u32>,
     /// Teacher feature channels kept by PCA (the paper keeps 64).
