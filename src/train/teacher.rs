@@ -225,8 +225,9 @@ impl TeacherSource {
     pub fn from_path(path: &Path, output: &str, size: u32, shifts: u32) -> Result<TeacherSource> {
         crate::ensure_within!(
             OutOfRange,
-            (1..=4).contains(&shifts),
-            "teacher shifts {shifts} is out of range 1..=4"
+            (1..=super::vit::MAX_SHIFTS).contains(&shifts),
+            "teacher shifts {shifts} is out of range 1..={}",
+            super::vit::MAX_SHIFTS
         );
         if path.is_dir() {
             Ok(TeacherSource::Precomputed(path.to_path_buf()))

@@ -35,6 +35,9 @@ pub const AUTO_MAX_SIDE: u32 = 672;
 /// takes 4 s per image instead of 10 or 23.
 pub const AUTO_SHIFTED_SIDE: u32 = 448;
 
+/// Most shifted runs per axis ([`Vit::run_dense`]): 4 is 16 runs per image.
+pub const MAX_SHIFTS: u32 = 4;
+
 /// The automatic input's long-side bounds for a teacher run with `shifts`.
 pub fn auto_side(shifts: u32) -> (u32, u32) {
     if shifts > 1 {
@@ -107,13 +110,13 @@ impl Vit {
         if f == 1 {
             return self.run(img);
         }
+        // Token i of run a is centred on (i + a/f + 1/(2f)) patches, so
+        // dense cell f·i + a is centred on (cell + ½) / f patches.
         let step = PATCH as f32 / f as f32;
+        let offset = |k: usize| step * (k as f32 - (f as f32 - 1.0) / 2.0);
         let mut runs = Vec::with_capacity(f * f);
         for b in 0..f {
             for a in 0..f {
-                // Token i of this run is centred on (i + a/f + 1/(2f)) patches,
-                // so dense cell f·i + a is centred on (cell + ½) / f patches.
-                let offset = |k: usize| step * (k as f32 - (f as f32 - 1.0) / 2.0);
                 runs.push(self.run_shifted(img, [offset(a), offset(b)])?);
             }
         }
