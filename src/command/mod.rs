@@ -296,8 +296,8 @@ pub enum Edit {
         /// small islands).
         #[serde(default)]
         cut_lambda: Option<f32>,
-        /// Segment on the field's grid coarsened 2× (an eighth of the
-        /// voxels: several times faster strokes on large fields).
+        /// Segment on the field's grid coarsened 2× or 3× (an eighth of the
+        /// voxels or less: several times faster strokes on large fields).
         #[serde(default)]
         coarse: Option<bool>,
     },

@@ -37,7 +37,10 @@ pub struct FeatureCache {
     /// [coarse copy](Self::coarse) keeps its fine grid's, as its σ is the
     /// largest fine σ of its block.
     pub voxel_size: f32,
-    /// The copy on a grid twice as coarse, made when first asked for.
+    /// Fine voxels per voxel of this cache along each axis: 1 for a cache
+    /// of the field's own grid, f for its [coarse copy](Self::coarse).
+    pub factor: usize,
+    /// The coarser copy, made when first asked for.
     coarse: std::sync::OnceLock<Option<Box<FeatureCache>>>,
     /// See [`Self::neighbours`].
     neighbours: std::sync::OnceLock<Vec<Neighbours>>,
@@ -147,10 +150,18 @@ impl FeatureCache {
             inv_norm,
             colours,
             voxel_size,
+            factor: 1,
             coarse: std::sync::OnceLock::new(),
             neighbours: std::sync::OnceLock::new(),
             solid: std::sync::Mutex::new(None),
         }
+    }
+
+    /// This cache marked as a coarse copy of `f` fine voxels to one along
+    /// each axis.
+    pub fn coarsened(mut self, f: usize) -> Self {
+        self.factor = f;
+        self
     }
 
     /// The cached voxels with σ above `floor`, kept for the last floor
@@ -225,9 +236,9 @@ impl FeatureCache {
         acc.iter().sum::<f32>() + tail
     }
 
-    /// The copy of this cache on a grid twice as coarse
-    /// ([`super::coarse`]), made on first use and kept; `None` when the
-    /// grid is too small to halve.
+    /// The copy of this cache on a grid two or three times as coarse
+    /// ([`super::coarse`]; its [`factor`](Self::factor) says which), made
+    /// on first use and kept; `None` when the grid is too small to coarsen.
     pub fn coarse(&self) -> Option<&FeatureCache> {
         self.coarse
             .get_or_init(|| super::coarse::build(self).map(Box::new))

@@ -75,8 +75,8 @@ pub struct SegmentParams {
     pub connected: bool,
     pub kmeans_seed: u64,
     pub kmeans_iters: usize,
-    /// Segment on the field's grid coarsened 2× ([`crate::field::coarse`]),
-    /// an eighth of the voxels, and map the mask back to the fine grid,
+    /// Segment on the field's grid coarsened 2× or 3× ([`crate::field::coarse`]),
+    /// an eighth of the voxels or less, and map the mask back to the fine grid,
     /// when the field has at least `coarse_min_voxels` occupied voxels
     /// (see [`coarse_cache`]).
     pub coarse: bool,
@@ -555,17 +555,17 @@ impl MaskBuilder {
         );
         let level = self.coarse.get_or_insert_with(|| {
             Box::new((
-                MaskBuilder::new(crate::field::coarse::downsample(&self.mask)),
+                MaskBuilder::new(crate::field::coarse::downsample(&self.mask, coarse.factor)),
                 self.mask.clone(),
             ))
         });
         if level.1 != self.mask {
-            level.0.mask = crate::field::coarse::downsample(&self.mask);
+            level.0.mask = crate::field::coarse::downsample(&self.mask, coarse.factor);
         }
         let mut t = level.0.stroke_on(scene, coarse, fine, stroke, polarity, p)?;
         let t0 = Instant::now();
         let floor = p.sigma_floor(fine.voxel_size);
-        self.mask = crate::field::coarse::upsample(fine, &level.0.mask, floor);
+        self.mask = crate::field::coarse::upsample(fine, &level.0.mask, coarse.factor, floor);
         level.1 = self.mask.clone();
         t.cut_ms += ms_since(t0);
         Ok(t)
@@ -835,7 +835,7 @@ fn segment_stroke(
         vec![]
     };
     if !std::ptr::eq(cache, owner) {
-        anchors = crate::field::coarse::parents(owner.geom.res, &anchors);
+        anchors = crate::field::coarse::parents(owner.geom.res, cache.factor, &anchors);
     }
     t.stroke_features_ms = ms_since(t0);
     let field = anchor::layer_of(scene, owner).map(|l| &*l.field);

@@ -552,7 +552,7 @@ fn tools_panel(
         .on_hover_text("Keep the matches joined to the stroked surface; off: every look-alike in the field")
         .changed();
     commit |= ui
-        .checkbox(&mut p.coarse, "fast: segment on a 2× coarser grid")
+        .checkbox(&mut p.coarse, "fast: segment on a 2–3× coarser grid")
         .on_hover_text("The same pipeline over an eighth of the voxels, the mask mapped back to the field's grid: several times faster strokes on large fields")
         .changed();
     ui.checkbox(&mut state.live, "live: redo the last stroke with new values");
