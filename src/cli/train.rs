@@ -12,7 +12,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use isrf::data::{Dataset, DatasetKind, LoadOptions};
 use isrf::train::plot::save_plot;
-use isrf::train::{preset_for, Session, TeacherSource, TrainConfig};
+use isrf::train::{preset_with, Session, TeacherSource, TrainConfig};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -167,7 +167,7 @@ pub fn overlay_config(c: TrainConfig, p: &std::path::Path) -> Result<TrainConfig
 /// (`side`: the training images' longest side), the quality preset, the
 /// `--config` file, then the flags.
 fn load_config(a: &Args, kind: DatasetKind, side: u32, teacher: bool) -> Result<TrainConfig> {
-    let (mut c, preset_feature_iters) = a.preset.apply(preset_for(kind, side));
+    let (mut c, preset_feature_iters) = preset_with(kind, side, a.preset);
     if let Some(p) = &a.config {
         c = overlay_config(c, p)?;
     }
