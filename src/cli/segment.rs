@@ -85,9 +85,9 @@ pub struct ParamArgs {
     /// balance between object and background [default: 1].
     #[arg(long)]
     pub cut_colour_margin: Option<f32>,
-    /// Segment on the field's grid coarsened 2× (an eighth of the voxels; 3× past 1.5 M occupied voxels)
-    /// and map the mask back to the fine grid, on fields with at least
-    /// 800k occupied voxels: `true` or `false` [default: true].
+    /// Segment on the field's grid coarsened 2× (an eighth of the voxels;
+    /// 3× past 1.5 M occupied voxels) and map the mask back to the fine
+    /// grid, on fields with at least 800k occupied voxels: `true` or `false` [default: true].
     #[arg(long)]
     pub coarse: Option<bool>,
 }

@@ -223,16 +223,13 @@ mod tests {
     fn a_coarse_voxel_sums_its_blocks_weighted_unit_features() {
         let f = field();
         let fine = FeatureCache::build(&f).unwrap();
-        let twofold = fine.coarse().expect("big enough to coarsen");
-        assert_eq!(twofold.factor, 2, "a small cache is coarsened twofold");
+        assert_eq!(
+            fine.coarse().expect("big enough to coarsen").factor,
+            2,
+            "a small cache is coarsened twofold"
+        );
         for k in [2, 3] {
-            let built;
-            let coarse = if k == 2 {
-                twofold
-            } else {
-                built = build_with(&fine, k).expect("big enough for three");
-                &built
-            };
+            let coarse = build_with(&fine, k).expect("big enough");
             assert_eq!(coarse.factor, k);
             assert_eq!(coarse.geom.res, [11, 9, 7].map(|n: usize| n.div_ceil(k)));
             assert_eq!(coarse.geom.spacing(), k as f32 * fine.geom.spacing());

@@ -164,7 +164,7 @@ const PIXELS_PER_POINT: f32 = 2.0;
 /// are unbounded, where a finer grid costs far more memory).
 pub fn preset_for(kind: DatasetKind, side: u32) -> TrainConfig {
     let mut c = preset(kind);
-    if kind == DatasetKind::Blender && side > BLENDER_PRESET_SIDE {
+    if full_size_synthetic(kind, side) {
         let want = (side as f32 / PIXELS_PER_POINT).round() as usize;
         c.res = c.res.max(want.min(MAX_IMAGE_SCALED_RES));
         c.mining = FULL_SIZE_MINING;
@@ -179,7 +179,7 @@ pub fn preset_for(kind: DatasetKind, side: u32) -> TrainConfig {
 /// iterations on the 400 grid. Also returns the distillation iterations.
 pub fn preset_with(kind: DatasetKind, side: u32, quality: Quality) -> (TrainConfig, usize) {
     let (mut c, feature_iters) = quality.apply(preset_for(kind, side));
-    if kind == DatasetKind::Blender && side > BLENDER_PRESET_SIDE {
+    if full_size_synthetic(kind, side) {
         c.res = c.res.min(MAX_IMAGE_SCALED_RES);
         c.coarse_res = c.coarse_res.min(c.res);
     }
@@ -188,6 +188,11 @@ pub fn preset_with(kind: DatasetKind, side: u32, quality: Quality) -> (TrainConf
 
 /// Image side the NeRF-synthetic preset was measured at (with margin).
 const BLENDER_PRESET_SIDE: u32 = 400;
+
+/// NeRF-synthetic images larger than the preset was measured at.
+fn full_size_synthetic(kind: DatasetKind, side: u32) -> bool {
+    kind == DatasetKind::Blender && side > BLENDER_PRESET_SIDE
+}
 
 /// Mined share of the batches for full-size NeRF-synthetic images
 /// ([`super::mining`]): 64 M pixels at 800×800 are more than the run marches,
