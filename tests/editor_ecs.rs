@@ -435,3 +435,67 @@ fn splat_import_is_a_request_that_adds_a_field_and_undoes() {
     assert!(st.errors.iter().any(|e| e.contains("bad.ply")), "{:?}", st.errors);
     assert_eq!(app.world().resource::<EditorSession>().state().fields.len(), 1);
 }
+
+/// A start-up script's relative inputs are read from the script's folder
+/// (as `isrf run` reads them), its outputs stay where the session writes:
+/// `isrf edit F --script assets/scripts/fern_walk.json` then works from any
+/// working folder.
+#[test]
+fn a_startup_scripts_inputs_are_read_from_its_own_folder() {
+    use isrf::app::editor::{startup_requests, EditorOptions};
+    use isrf::command::{Command, Export, Output, StrokeSource};
+    let dir = tempfile::tempdir().unwrap();
+    let scripts = dir.path().join("scripts");
+    std::fs::create_dir(&scripts).unwrap();
+    let script = scripts.join("walk.json");
+    std::fs::write(
+        &script,
+        r#"[
+ {"load_field": {"name": "b", "source": {"file": "../fields/b.safetensors"}}},
+ {"stroke": {"object": "pot", "source": {"file": "../strokes/pot.json"}}},
+ {"stroke": {"object": "pot", "source": {"file": "/abs/pot.json"}}},
+ {"export": {"object_field": {"object": "pot", "out": "pot.safetensors"}}}
+]"#,
+    )
+    .unwrap();
+    let opts = EditorOptions {
+        scene: Some("tabletop".into()),
+        res: 24,
+        script: Some(script.clone()),
+        ..Default::default()
+    };
+    let reqs = startup_requests(&opts).unwrap();
+    let applied: Vec<Command> = reqs
+        .into_iter()
+        .filter_map(|r| match r {
+            Request::Apply(c) => Some(c),
+            _ => None,
+        })
+        .collect();
+    // The demo scene, then the script's four commands.
+    assert_eq!(applied.len(), 5);
+    let base = script.canonicalize().unwrap().parent().unwrap().to_path_buf();
+    match &applied[1] {
+        Command::Edit(Edit::LoadField {
+            source: FieldSource::File(p),
+            ..
+        }) => assert_eq!(p, &base.join("../fields/b.safetensors")),
+        c => panic!("unexpected {c:?}"),
+    }
+    let stroke_file = |c: &Command| match c {
+        Command::Edit(Edit::Stroke {
+            source: StrokeSource::File(p),
+            ..
+        }) => p.clone(),
+        c => panic!("unexpected {c:?}"),
+    };
+    assert_eq!(stroke_file(&applied[2]), base.join("../strokes/pot.json"));
+    assert_eq!(stroke_file(&applied[3]), std::path::PathBuf::from("/abs/pot.json"));
+    // The output is not moved.
+    match &applied[4] {
+        Command::Output(Output::Export(Export::ObjectField { out, .. })) => {
+            assert_eq!(out, &std::path::PathBuf::from("pot.safetensors"))
+        }
+        c => panic!("unexpected {c:?}"),
+    }
+}

@@ -20,7 +20,10 @@ pub struct Args {
     /// Window size in logical pixels, WxH
     #[arg(long, default_value = "1280x720", value_parser = parse_size)]
     pub size: (u32, u32),
-    /// Apply the commands of this script at start-up (RON or JSON)
+    /// Apply the commands of this script at start-up (RON or JSON); its
+    /// relative inputs (fields, strokes, cameras) are read from the
+    /// script's folder, as `isrf run` reads them, and its outputs written to
+    /// the working folder
     #[arg(long, value_name = "FILE")]
     pub script: Option<PathBuf>,
     /// Hide the panels (clean screenshots)

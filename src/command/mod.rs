@@ -41,7 +41,7 @@ use crate::util::{affine_from_rows, invertible};
 use crate::Result;
 use glam::{Affine3A, EulerRot, Quat, Vec3};
 use serde::{Deserialize, Serialize};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Where a field comes from.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -413,6 +413,36 @@ impl Command {
             Command::Edit(e) => Some(e),
             Command::Output(_) => None,
         }
+    }
+    /// The command with its relative input paths (fields, strokes,
+    /// scribbles, cameras) taken from `dir`, as `isrf run` reads a script's
+    /// inputs from the script's folder. Outputs are left alone: they go
+    /// where the session writes.
+    pub fn with_inputs_under(mut self, dir: &Path) -> Command {
+        let rebase = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = dir.join(&*p);
+            }
+        };
+        let cameras = |c: &mut CameraSource| {
+            if let CameraSource::File(p) = c {
+                rebase(p)
+            }
+        };
+        match &mut self {
+            Command::Edit(Edit::LoadField {
+                source: FieldSource::File(p),
+                ..
+            }) => rebase(p),
+            Command::Edit(Edit::Stroke { source, .. }) => match source {
+                StrokeSource::File(p) | StrokeSource::Scribble { path: p, .. } => rebase(p),
+                StrokeSource::Inline(_) | StrokeSource::Demo { .. } => {}
+            },
+            Command::Output(Output::Render { cameras: c, .. })
+            | Command::Output(Output::Export(Export::Masks { cameras: c, .. })) => cameras(c),
+            _ => {}
+        }
+        self
     }
 }
 

@@ -117,10 +117,24 @@ pub fn startup_requests(opts: &EditorOptions) -> Result<Vec<Request>> {
         ));
     }
     if let Some(s) = &opts.script {
+        // Its relative inputs are read from its own folder, as `isrf run`
+        // reads them, so a script works from any working folder.
         let script = crate::command::script::load_script(s)?;
-        out.extend(script.commands.into_iter().map(Request::Apply));
+        let dir = script_dir(s)?;
+        out.extend(
+            script
+                .commands
+                .into_iter()
+                .map(|c| Request::Apply(c.with_inputs_under(&dir))),
+        );
     }
     Ok(out)
+}
+
+/// The absolute folder of a script file.
+fn script_dir(script: &Path) -> Result<PathBuf> {
+    let abs = std::fs::canonicalize(script).map_err(|e| Error::io(script, e))?;
+    Ok(abs.parent().map(Path::to_path_buf).unwrap_or(abs))
 }
 
 /// What crash recovery does at start-up.
