@@ -503,6 +503,43 @@ fn pruning_keeps_dense_voxels_and_a_margin() {
     assert!((b.max - geom.point(11, 11, 11)).length() < 1e-5);
 }
 
+/// A faint haze of lone voxels (what a first stage leaves over the whole
+/// box) does not hold the box open when it shrinks; a small solid part
+/// away from the main one does.
+#[test]
+fn the_box_shrinks_past_haze_but_keeps_small_solid_parts() {
+    let geom = GridGeom::new(unit_box(), [32; 3]);
+    let mut m = Model::new(geom, 0, 0.0, 1e-3).unwrap();
+    let step = step_of(&geom);
+    // Raw density giving a per-sample opacity of `a`.
+    let raw = |a: f32| isrf::train::model::inverse_softplus(-(1.0 - a).ln() / step);
+    for z in 10..20 {
+        for y in 12..18 {
+            for x in 8..22 {
+                m.density[geom.index(x, y, z)] = raw(0.9);
+            }
+        }
+    }
+    // Haze: lone voxels of opacity 0.05 near every face and corner.
+    for &c in &[[0, 0, 0], [31, 31, 31], [0, 16, 15], [30, 2, 29], [15, 31, 0], [16, 0, 31]] {
+        m.density[geom.index(c[0], c[1], c[2])] = raw(0.05);
+    }
+    let b = m.occupied_bounds(step, 1e-2, 1).unwrap();
+    assert!((b.min - geom.point(7, 11, 9)).length() < 1e-5, "{b:?}");
+    assert!((b.max - geom.point(22, 18, 20)).length() < 1e-5, "{b:?}");
+    // A separate 2×2×2 block of opaque voxels (mass 7.2) is content.
+    for z in 26..28 {
+        for y in 3..5 {
+            for x in 26..28 {
+                m.density[geom.index(x, y, z)] = raw(0.9);
+            }
+        }
+    }
+    let b = m.occupied_bounds(step, 1e-2, 1).unwrap();
+    assert!((b.min - geom.point(7, 2, 9)).length() < 1e-5, "{b:?}");
+    assert!((b.max - geom.point(28, 18, 28)).length() < 1e-5, "{b:?}");
+}
+
 #[test]
 fn colour_is_stored_for_active_voxels_only_and_survives_pruning() {
     let geom = GridGeom::new(unit_box(), [21; 3]);

@@ -349,8 +349,14 @@ fn train_loop(session: &mut Session, a: &Args, ckpt: &Path) -> Result<()> {
         );
     }
     let (mut loss_avg, mut psnr_avg) = (0.0f32, 0.0f32);
+    let mut notes_shown = session.trainer.notes.len();
     while !session.trainer.is_done() {
         let s = session.trainer.step()?;
+        // Stage changes and prunes, as they happen.
+        for n in &session.trainer.notes[notes_shown..] {
+            bar.suspend(|| eprintln!("{n}"));
+        }
+        notes_shown = session.trainer.notes.len();
         let k = 0.05;
         loss_avg = if s.iter <= 1 {
             s.loss

@@ -143,7 +143,7 @@ pub fn preset(kind: DatasetKind) -> TrainConfig {
 }
 
 /// Longest side of the grid [`preset_for`] gives full-size images.
-pub const MAX_IMAGE_SCALED_RES: usize = 400;
+pub const MAX_IMAGE_SCALED_RES: usize = 360;
 
 /// Image pixels per grid point [`preset_for`] gives full-size images.
 const PIXELS_PER_POINT: f32 = 2.0;
@@ -152,13 +152,17 @@ const PIXELS_PER_POINT: f32 = 2.0;
 /// NeRF-synthetic preset was measured at 200×200 (a grid point per 1.25
 /// pixels across lego); on larger images its grid blurs what the photos
 /// show, so it gets a grid point per [`PIXELS_PER_POINT`] pixels, up to
-/// [`MAX_IMAGE_SCALED_RES`]: lego at 800×800 trains a 400 grid. Measured
-/// there (mined batches, 9500 iterations, `--eval-views 10`): 160 → 320
-/// lifted the val views from 28.13 to 30.33 dB (all 100, uniform batches),
-/// 320 → 400 from 30.35 to 30.72 dB (each of the 10 views better) for
-/// 1.37× the radiance time (14.0 → 19.2 min on two cores) and the same
-/// 2.21 GB peak: the largest grid that keeps the whole run within 30
-/// minutes there. Strokes on it are segmented three times coarser
+/// [`MAX_IMAGE_SCALED_RES`] along the longest side of the box. Measured
+/// on lego at 800×800 (mined batches, 9500 iterations, `--eval-views 10`)
+/// while the box stayed the whole 3-unit cube: 160 → 320 lifted the val
+/// views from 28.13 to 30.33 dB (all 100, uniform batches), 320 → 400
+/// from 30.35 to 30.72 dB for 1.37× the radiance time and the same
+/// 2.21 GB peak. Since the box shrinks past the first stage's haze
+/// ([`super::Model::occupied_bounds`]: lego's is 1.48 × 2.52 × 1.81),
+/// 360 points along it (211×360×258, 7 % finer than the old 400³) score
+/// 31.05 dB on those views in 916 s of training at 2.01 GB, and 400
+/// (234×400×287) 31.13 dB at 2.55 GB, past the 2.5 GB a run may take.
+/// Strokes on such fields are segmented three times coarser
 /// ([`crate::field::coarse::factor_for`]). Other kinds
 /// keep theirs (LLFF's is already sized for its images; COLMAP captures
 /// are unbounded, where a finer grid costs far more memory).
@@ -174,9 +178,9 @@ pub fn preset_for(kind: DatasetKind, side: u32) -> TrainConfig {
 
 /// [`preset_for`] scaled by `quality` ([`Quality::apply`]), with full-size
 /// NeRF-synthetic grids kept at [`MAX_IMAGE_SCALED_RES`]: lego at 800×800
-/// peaks at 2.21 GB on the 400 grid already, and `best`'s 5/4 (500) would
-/// pass the 2.5 GB a run may take; `best` there trains twice the
-/// iterations on the 400 grid. Also returns the distillation iterations.
+/// peaks at 2.01 GB on the 360 grid, and at 2.55 GB on a 400 one, past
+/// the 2.5 GB a run may take, so `best`'s 5/4 would be too; `best` there
+/// trains twice the iterations on the 360 grid. Also returns the distillation iterations.
 pub fn preset_with(kind: DatasetKind, side: u32, quality: Quality) -> (TrainConfig, usize) {
     let (mut c, feature_iters) = quality.apply(preset_for(kind, side));
     if full_size_synthetic(kind, side) {
@@ -554,7 +558,7 @@ mod tests {
         let base = preset(DatasetKind::Blender).res;
         assert_eq!(preset_for(DatasetKind::Blender, 200).res, base, "the measured 200×200");
         assert_eq!(preset_for(DatasetKind::Blender, 400).res, base.max(160));
-        assert_eq!(preset_for(DatasetKind::Blender, 800).res, 400);
+        assert_eq!(preset_for(DatasetKind::Blender, 800).res, 360);
         assert_eq!(preset_for(DatasetKind::Blender, 600).res, 300);
         assert_eq!(preset_for(DatasetKind::Blender, 4000).res, MAX_IMAGE_SCALED_RES);
         // Only full-size images mine their batches.
@@ -568,10 +572,10 @@ mod tests {
     fn the_best_preset_keeps_full_size_synthetic_grids_within_memory() {
         let (best, _) = preset_with(DatasetKind::Blender, 800, Quality::Best);
         let default = preset_for(DatasetKind::Blender, 800);
-        assert_eq!(best.res, MAX_IMAGE_SCALED_RES, "not 5/4 of the 400 grid");
+        assert_eq!(best.res, MAX_IMAGE_SCALED_RES, "not 5/4 of the 360 grid");
         assert_eq!(best.iters, 2 * default.iters);
         let (fast, _) = preset_with(DatasetKind::Blender, 800, Quality::Fast);
-        assert_eq!(fast.res, 300);
+        assert_eq!(fast.res, 270);
         // Other captures and sizes scale as the quality says.
         let (small, _) = preset_with(DatasetKind::Blender, 200, Quality::Best);
         assert_eq!(small.res, 200);
