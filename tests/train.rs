@@ -521,7 +521,14 @@ fn the_box_shrinks_past_haze_but_keeps_small_solid_parts() {
         }
     }
     // Haze: lone voxels of opacity 0.05 near every face and corner.
-    for &c in &[[0, 0, 0], [31, 31, 31], [0, 16, 15], [30, 2, 29], [15, 31, 0], [16, 0, 31]] {
+    for &c in &[
+        [0, 0, 0],
+        [31, 31, 31],
+        [0, 16, 15],
+        [30, 2, 29],
+        [15, 31, 0],
+        [16, 0, 31],
+    ] {
         m.density[geom.index(c[0], c[1], c[2])] = raw(0.05);
     }
     let b = m.occupied_bounds(step, 1e-2, 1).unwrap();
