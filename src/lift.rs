@@ -259,7 +259,7 @@ impl Accumulator {
                 .filter_map(|s| {
                     let mut mean = vec![0f32; c];
                     let mut n = 0;
-                    crate::splat::import::neighbours(geom, voxels[s], |v| {
+                    geom.neighbours26(voxels[s], |v| {
                         if let Some(t) = index.slot(v).filter(|&t| known[t]) {
                             mean.iter_mut()
                                 .zip(&self.sum[t * c..(t + 1) * c])

@@ -430,17 +430,14 @@ impl Command {
             }
         };
         match &mut self {
-            Command::Edit(Edit::LoadField {
-                source: FieldSource::File(p),
-                ..
-            }) => rebase(p),
-            Command::Edit(Edit::Stroke { source, .. }) => match source {
-                StrokeSource::File(p) | StrokeSource::Scribble { path: p, .. } => rebase(p),
-                StrokeSource::Inline(_) | StrokeSource::Demo { .. } => {}
-            },
+            Command::Edit(e) => {
+                if let Some(p) = e.input_mut() {
+                    rebase(p)
+                }
+            }
             Command::Output(Output::Render { cameras: c, .. })
             | Command::Output(Output::Export(Export::Masks { cameras: c, .. })) => cameras(c),
-            _ => {}
+            Command::Output(_) => {}
         }
         self
     }
@@ -456,6 +453,22 @@ impl Output {
 }
 
 impl Edit {
+    /// The file this edit reads (a field, a stroke document, a scribble),
+    /// if any: what a script's folder resolves and what crash recovery
+    /// stamps.
+    pub fn input_mut(&mut self) -> Option<&mut PathBuf> {
+        match self {
+            Edit::LoadField {
+                source: FieldSource::File(p),
+                ..
+            } => Some(p),
+            Edit::Stroke { source, .. } => match source {
+                StrokeSource::File(p) | StrokeSource::Scribble { path: p, .. } => Some(p),
+                StrokeSource::Inline(_) | StrokeSource::Demo { .. } => None,
+            },
+            _ => None,
+        }
+    }
     /// Short name for messages ("stroke", "load_field", ...).
     pub fn kind(&self) -> &'static str {
         match self {

@@ -20,7 +20,7 @@
 
 use super::session::Session;
 use super::state::State;
-use super::{Command, Edit, FieldSource, StrokeSource};
+use super::{Command, Edit};
 use crate::error::{write_atomic, Error, Result};
 use crate::util::Progress;
 use serde::{Deserialize, Serialize};
@@ -237,10 +237,10 @@ impl Recorder {
 
     /// The recovery document of `session` as it stands.
     pub fn doc(&mut self, session: &Session) -> Result<RecoveryDoc> {
-        let commands = session.log().to_vec();
+        let mut commands = session.log().to_vec();
         let mut files = Vec::new();
         let replayed = self.opened_copy.as_ref().or(self.opened.as_ref());
-        for p in input_files(session, replayed.map(PathBuf::as_path), &commands) {
+        for p in input_files(session, replayed.map(PathBuf::as_path), &mut commands) {
             if !self.stamps.contains_key(&p) {
                 let s = FileStamp::of(&p)?;
                 self.stamps.insert(p.clone(), s);
@@ -279,30 +279,13 @@ impl Recorder {
     }
 }
 
-/// The input files a session's composition and commands read, absolute.
-fn input_files(session: &Session, opened: Option<&Path>, commands: &[Edit]) -> Vec<PathBuf> {
-    let resolve = |p: &Path| {
-        if p.is_absolute() {
-            p.to_path_buf()
-        } else {
-            session.base_dir.join(p)
-        }
-    };
-    let mut out: Vec<PathBuf> = opened.map(resolve).into_iter().collect();
+/// The input files a session's composition and commands read, absolute,
+/// without repeats (`commands` is mutable only because [`Edit::input_mut`]
+/// is how an edit hands out its path; nothing is changed).
+fn input_files(session: &Session, opened: Option<&Path>, commands: &mut [Edit]) -> Vec<PathBuf> {
+    let mut out: Vec<PathBuf> = opened.map(|p| session.resolve(p)).into_iter().collect();
     for c in commands {
-        let named = match c {
-            Edit::LoadField {
-                source: FieldSource::File(p),
-                ..
-            } => Some(p),
-            Edit::Stroke { source, .. } => match source {
-                StrokeSource::File(p) => Some(p),
-                StrokeSource::Scribble { path, .. } => Some(path),
-                StrokeSource::Inline(_) | StrokeSource::Demo { .. } => None,
-            },
-            _ => None,
-        };
-        if let Some(p) = named.map(|p| resolve(p)) {
+        if let Some(p) = c.input_mut().map(|p| session.resolve(p)) {
             if !out.contains(&p) {
                 out.push(p);
             }

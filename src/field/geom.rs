@@ -94,6 +94,22 @@ impl GridGeom {
         x + self.res[0] * (y + self.res[1] * z)
     }
     #[inline]
+    /// Calls `f` for every grid point in the 3×3×3 neighbourhood of `v`
+    /// (26-connected; `v` excluded, clipped to the grid).
+    pub fn neighbours26(&self, v: usize, mut f: impl FnMut(usize)) {
+        let [x, y, z] = self.coords(v);
+        let near = |c: usize, n: usize| c.saturating_sub(1)..=(c + 1).min(n - 1);
+        for zz in near(z, self.res[2]) {
+            for yy in near(y, self.res[1]) {
+                for xx in near(x, self.res[0]) {
+                    let n = self.index(xx, yy, zz);
+                    if n != v {
+                        f(n);
+                    }
+                }
+            }
+        }
+    }
     pub fn coords(&self, i: usize) -> [usize; 3] {
         let x = i % self.res[0];
         let yz = i / self.res[0];

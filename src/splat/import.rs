@@ -464,7 +464,7 @@ fn finish_colour(acc: &[f32], index: &RankIndex, geom: &GridGeom) -> Vec<f16> {
             let mut sum = [0f32; ACC];
             add(&mut sum, s);
             if sum[27] <= 0.0 {
-                neighbours(geom, v, |n| {
+                geom.neighbours26(v, |n| {
                     if let Some(t) = index.slot(n) {
                         add(&mut sum, t);
                     }
@@ -476,22 +476,6 @@ fn finish_colour(acc: &[f32], index: &RankIndex, geom: &GridGeom) -> Vec<f16> {
             }
         });
     out
-}
-
-/// Calls `f` for every grid point in the 3×3×3 neighbourhood of `v` (v excluded).
-pub(crate) fn neighbours(geom: &GridGeom, v: usize, mut f: impl FnMut(usize)) {
-    let [x, y, z] = geom.coords(v);
-    let near = |c: usize, n: usize| c.saturating_sub(1)..=(c + 1).min(n - 1);
-    for zz in near(z, geom.res[2]) {
-        for yy in near(y, geom.res[1]) {
-            for xx in near(x, geom.res[0]) {
-                let n = geom.index(xx, yy, zz);
-                if n != v {
-                    f(n);
-                }
-            }
-        }
-    }
 }
 
 /// Which of the file's Gaussians a bitmap over the field's grid holds: a

@@ -517,35 +517,32 @@ impl Model {
         // The heaviest component's box, in case none is heavy enough.
         let mut heaviest = (0.0f64, [0usize; 3], [0usize; 3]);
         let mut seen = vec![false; g.len()];
-        let mut members = vec![];
+        let mut queue = vec![];
         for start in 0..g.len() {
             if seen[start] || !solid(start) {
                 continue;
             }
-            // One component: its voxels and its opacity mass.
+            // One component: its opacity mass and its bounds.
             seen[start] = true;
-            members.clear();
-            members.push(start);
+            queue.clear();
+            queue.push(start);
             let (mut k, mut mass) = (0, 0.0f64);
-            while k < members.len() {
-                let v = members[k];
+            let (mut clo, mut chi) = ([usize::MAX; 3], [0usize; 3]);
+            while k < queue.len() {
+                let v = queue[k];
                 k += 1;
                 mass += alpha[v] as f64;
-                for n in neighbours26(g.coords(v), g.res) {
-                    let j = g.index(n[0], n[1], n[2]);
-                    if !seen[j] && solid(j) {
-                        seen[j] = true;
-                        members.push(j);
-                    }
-                }
-            }
-            let (mut clo, mut chi) = ([usize::MAX; 3], [0usize; 3]);
-            for &v in &members {
                 let c = g.coords(v);
                 for a in 0..3 {
                     clo[a] = clo[a].min(c[a]);
                     chi[a] = chi[a].max(c[a]);
                 }
+                g.neighbours26(v, |j| {
+                    if !seen[j] && solid(j) {
+                        seen[j] = true;
+                        queue.push(j);
+                    }
+                });
             }
             if mass > heaviest.0 {
                 heaviest = (mass, clo, chi);
@@ -577,18 +574,6 @@ impl Model {
 /// voxels' worth. The haze a first stage leaves comes in groups of well
 /// under one; a real part the coarse grid resolves holds several.
 pub const SOLID_COMPONENT_MASS: f64 = 4.0;
-
-/// The neighbours of `c` (26-connected) inside a grid of `res`.
-fn neighbours26(c: [usize; 3], res: [usize; 3]) -> impl Iterator<Item = [usize; 3]> {
-    (0..27usize).filter(|&k| k != 13).filter_map(move |k| {
-        let d = [k % 3, k / 3 % 3, k / 9];
-        let mut n = [0usize; 3];
-        for a in 0..3 {
-            n[a] = (c[a] + d[a]).checked_sub(1).filter(|&x| x < res[a])?;
-        }
-        Some(n)
-    })
-}
 
 /// Per-slot rows (`stride` values each) of `old`'s slots renumbered for
 /// `new`; voxels `old` lacks get zeros.
