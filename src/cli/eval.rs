@@ -45,6 +45,10 @@ pub struct Args {
     /// selected) to this PNG.
     #[arg(long, requires = "nvos")]
     pub mask_out: Option<PathBuf>,
+    /// With --nvos: write the selection (a 3D bitmap of `--field`, as
+    /// `isrf segment` writes) to this file, to render or edit it.
+    #[arg(long, requires = "nvos")]
+    pub object_out: Option<PathBuf>,
     /// Object bitmap (from `isrf segment`) for --alpha.
     #[arg(long)]
     pub object: Option<PathBuf>,
@@ -76,6 +80,9 @@ pub fn run(a: Args) -> Result<()> {
             let v = |&b: &bool| if b { 255u8 } else { 0 };
             let rgb: Vec<u8> = r.predicted.iter().flat_map(|b| [v(b); 3]).collect();
             isrf::render::save_png(out, r.size[0], r.size[1], &rgb)?;
+        }
+        if let Some(out) = &a.object_out {
+            isrf::segment::bitmap_file::save_bitmap(out, &r.mask, &a.scene)?;
         }
         println!("{}", serde_json::to_string_pretty(&r)?);
         return Ok(());

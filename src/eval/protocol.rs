@@ -241,6 +241,9 @@ pub struct NvosReport {
     pub predicted: Vec<bool>,
     #[serde(skip)]
     pub size: [u32; 2],
+    /// The selection itself, for `isrf eval --object-out`.
+    #[serde(skip)]
+    pub mask: Bitmap,
 }
 
 fn frame_camera(cams: &CameraSet, name: &str) -> Result<Camera> {
@@ -369,6 +372,7 @@ pub fn evaluate_nvos(
             })
             .collect(),
         voxels: mask.count(),
+        mask,
         predicted: pred,
         size: [gt_img.width(), gt_img.height()],
     })
