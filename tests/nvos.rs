@@ -3,6 +3,7 @@
 //! scored, and the selection it writes (`--object-out`) is the one scored.
 
 use isrf::camera::{Camera, CameraSet};
+use isrf::eval::metrics::iou;
 use isrf::field::{Bitmap, Field};
 use isrf::render::{render, Probe, RenderOptions, Scene};
 use isrf::segment::bitmap_file::load_bitmap;
@@ -20,7 +21,10 @@ fn probe(field: &Arc<Field>, cam: &Camera, mask: Bitmap) -> Vec<f32> {
         depth: false,
         ..Default::default()
     };
-    render(&Scene::single(field.clone()), cam, &opts).unwrap().out.probe_opacity
+    render(&Scene::single(field.clone()), cam, &opts)
+        .unwrap()
+        .out
+        .probe_opacity
 }
 
 fn save_mask(path: &Path, cam: &Camera, on: impl Fn(usize) -> bool) {
@@ -68,20 +72,20 @@ fn nvos_scores_a_scribbled_object_and_writes_the_selection_it_scored() {
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{}\n{stdout}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}\n{stdout}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let report: serde_json::Value = serde_json::from_str(&stdout).unwrap();
-    let iou = report["iou"].as_f64().unwrap();
-    assert!(iou > 0.8, "ball IoU {iou}");
+    let scored = report["iou"].as_f64().unwrap();
+    assert!(scored > 0.8, "ball IoU {scored}");
     // The written selection, rendered on the target view, is the scored
     // prediction: the same IoU against the true mask.
     let (mask, _) = load_bitmap(&sel).unwrap();
     assert_eq!(mask.count() as u64, report["voxels"].as_u64().unwrap());
     let predicted = probe(&field, &target.camera, mask);
-    let (mut both, mut either) = (0usize, 0usize);
-    for (p, t) in predicted.iter().zip(&on_target) {
-        let (p, t) = (*p > 0.1, *t > 0.1);
-        both += (p && t) as usize;
-        either += (p || t) as usize;
-    }
-    assert!((both as f64 / either as f64 - iou).abs() < 1e-9, "{both}/{either} vs {iou}");
+    let over = |o: &[f32]| o.iter().map(|&v| v > 0.1).collect::<Vec<bool>>();
+    let rendered = iou(&over(&predicted), &over(&on_target));
+    assert!((rendered - scored).abs() < 1e-9, "{rendered} vs {scored}");
 }
