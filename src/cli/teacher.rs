@@ -27,6 +27,14 @@ pub struct TeacherArgs {
     /// 448 pixels) and orbit views, 1 for NeRF-synthetic renders.
     #[arg(long)]
     pub teacher_shifts: Option<u32>,
+    /// Run the ONNX teacher on N×N overlapping crops of each image (a
+    /// quarter of a crop's side shared with its neighbours), each enlarged
+    /// to the teacher's input, and blend their tokens into one map:
+    /// objects look 1.75 times larger to the model at N = 2, so small
+    /// objects next to look-alikes get tokens of their own, while large
+    /// surfaces split more (N² times the teacher's time; 1..=4, default 1).
+    #[arg(long, default_value_t = 1)]
+    pub teacher_tiles: u32,
     /// Teacher feature channels kept by PCA (the paper keeps 64).
     #[arg(long, default_value_t = isrf::train::DEFAULT_FEATURE_DIMS)]
     pub feature_dims: usize,
@@ -48,6 +56,7 @@ impl TeacherArgs {
             &self.teacher_output,
             self.teacher_size.unwrap_or(0),
             self.teacher_shifts.unwrap_or(shifts),
+            self.teacher_tiles,
         )?))
     }
 

