@@ -20,6 +20,23 @@ pub struct FeatureMap {
 }
 
 impl FeatureMap {
+    /// Adds `weight` times the bilinear sample at cell coordinates (u, v)
+    /// (cell centres at whole numbers, clamped to the map) of this
+    /// `channels`-channel map to `acc`.
+    pub fn add_bilinear(&self, channels: usize, u: f32, v: f32, weight: f32, acc: &mut [f32]) {
+        let c = channels;
+        let u = u.clamp(0.0, (self.width - 1) as f32);
+        let v = v.clamp(0.0, (self.height - 1) as f32);
+        let (x0, y0) = (u as usize, v as usize);
+        let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
+        let (fx, fy) = (u - x0 as f32, v - y0 as f32);
+        let at = |x: usize, y: usize| &self.data[(y * self.width + x) * c..(y * self.width + x + 1) * c];
+        let (a, b, d, e) = (at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1));
+        for k in 0..c {
+            acc[k] += weight * ((1.0 - fy) * ((1.0 - fx) * a[k] + fx * b[k]) + fy * ((1.0 - fx) * d[k] + fx * e[k]));
+        }
+    }
+
     /// The features of a rendered frame as a map at the frame's own
     /// resolution (what a perfect teacher would give).
     pub fn from_frame(f: crate::render::Frame) -> FeatureMap {
@@ -75,19 +92,10 @@ impl FeatureMaps {
     /// (clamped at the borders) into `out` (len = channels).
     pub fn sample(&self, view: usize, pixel: [u16; 2], out: &mut [f32]) {
         let m = &self.maps[view];
-        let c = self.channels;
         let u = (pixel[0] as f32 + 0.5) / m.image_width as f32 * m.width as f32 - 0.5;
         let v = (pixel[1] as f32 + 0.5) / m.image_height as f32 * m.height as f32 - 0.5;
-        let u = u.clamp(0.0, (m.width - 1) as f32);
-        let v = v.clamp(0.0, (m.height - 1) as f32);
-        let (x0, y0) = (u as usize, v as usize);
-        let (x1, y1) = ((x0 + 1).min(m.width - 1), (y0 + 1).min(m.height - 1));
-        let (fx, fy) = (u - x0 as f32, v - y0 as f32);
-        let at = |x: usize, y: usize| &m.data[(y * m.width + x) * c..(y * m.width + x + 1) * c];
-        let (a, b, d, e) = (at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1));
-        for k in 0..c {
-            out[k] = (1.0 - fy) * ((1.0 - fx) * a[k] + fx * b[k]) + fy * ((1.0 - fx) * d[k] + fx * e[k]);
-        }
+        out[..self.channels].fill(0.0);
+        m.add_bilinear(self.channels, u, v, 1.0, out);
     }
 
     /// Attaches the guides of [`FeatureMaps::sample_guided`]: for each map,

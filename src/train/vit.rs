@@ -272,6 +272,13 @@ fn stitch(tiles: &[(FeatureMap, [f32; 4])], img: &Image) -> FeatureMap {
     let c = first.data.len() / (first.width * first.height);
     let width = ((first.width as f32 / crop[2]).round() as usize).max(1);
     let height = ((first.height as f32 / crop[3]).round() as usize).max(1);
+    // The tent runs between a tile's outer tokens' centres: past them its
+    // sample is clamped, so it only counts where no tile holds the cell
+    // between its tokens.
+    let tent = |t: f32, n: usize| {
+        let t = t / (n as f32 - 1.0).max(1.0);
+        t.min(1.0 - t).max(0.0)
+    };
     let mut data = vec![0.0f32; width * height * c];
     let mut acc = vec![0.0f32; c];
     for j in 0..height {
@@ -286,15 +293,8 @@ fn stitch(tiles: &[(FeatureMap, [f32; 4])], img: &Image) -> FeatureMap {
                     continue;
                 }
                 let (u, v) = (lx * m.width as f32 - 0.5, ly * m.height as f32 - 0.5);
-                // The tent runs between the outer tokens' centres: past
-                // them a tile's sample is clamped, so it only counts
-                // where no tile holds the cell between its tokens.
-                let tent = |t: f32, n: usize| {
-                    let t = t / (n as f32 - 1.0).max(1.0);
-                    t.min(1.0 - t).max(0.0)
-                };
                 let w = (tent(u, m.width) * tent(v, m.height)).max(1e-6);
-                bilinear_add(m, c, u, v, w, &mut acc);
+                m.add_bilinear(c, u, v, w, &mut acc);
                 total += w;
             }
             let out = &mut data[(j * width + i) * c..(j * width + i + 1) * c];
@@ -309,28 +309,6 @@ fn stitch(tiles: &[(FeatureMap, [f32; 4])], img: &Image) -> FeatureMap {
         image_width: img.width,
         image_height: img.height,
         data,
-    }
-}
-
-/// Adds `weight` times map `m`'s bilinear sample at cell coordinates
-/// (u, v) (clamped to the map) to `acc`.
-fn bilinear_add(m: &FeatureMap, c: usize, u: f32, v: f32, weight: f32, acc: &mut [f32]) {
-    let u = u.clamp(0.0, (m.width - 1) as f32);
-    let v = v.clamp(0.0, (m.height - 1) as f32);
-    let (x0, y0) = (u as usize, v as usize);
-    let (x1, y1) = ((x0 + 1).min(m.width - 1), (y0 + 1).min(m.height - 1));
-    let (fx, fy) = (u - x0 as f32, v - y0 as f32);
-    let corners = [
-        (x0, y0, (1.0 - fx) * (1.0 - fy)),
-        (x1, y0, fx * (1.0 - fy)),
-        (x0, y1, (1.0 - fx) * fy),
-        (x1, y1, fx * fy),
-    ];
-    for (x, y, k) in corners {
-        let cell = &m.data[(y * m.width + x) * c..(y * m.width + x + 1) * c];
-        for (a, f) in acc.iter_mut().zip(cell) {
-            *a += weight * k * f;
-        }
     }
 }
 
