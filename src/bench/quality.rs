@@ -904,7 +904,10 @@ pub fn score_scene(
             seconds,
             stages: if diagnose {
                 let truth = (&resampled, &scene.labels, label);
-                stage_rows(&render_scene, &cache, &stroke, truth, &params, &region)?
+                let mut stages = stage_rows(&render_scene, &cache, &stroke, truth, &params, &region)?;
+                // The NVOS-style mask too: what the negatives left or took.
+                stages.push(StageRow::score("with negatives".into(), &nvos, truth));
+                stages
             } else {
                 vec![]
             },

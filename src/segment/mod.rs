@@ -683,7 +683,15 @@ impl MaskBuilder {
         let hard = anchor::near_anchors(&self.mask, &self.positive_anchors, anchor::radius(cache));
         let rows = cut::rows_of(cache, &domain);
         let object_distance = match &mut self.positive {
-            Some(d) if !d.centres().is_empty() => d.of_rows(cache, &rows),
+            Some(d) if !d.centres().is_empty() => {
+                let mut stroked = d.of_rows(cache, &rows);
+                let held = self.held_centres(cache, s, p);
+                if !held.is_empty() {
+                    let held = nnfm::CentreSet::new(held).min_distances(cache, &rows);
+                    stroked.iter_mut().zip(held).for_each(|(a, b)| *a = a.min(b));
+                }
+                stroked
+            }
             _ => nnfm::CentreSet::new(object).min_distances(cache, &rows),
         };
         let input = cut::CutInput {
@@ -713,6 +721,41 @@ impl MaskBuilder {
             self.mask = joined;
         }
         Ok(true)
+    }
+
+    /// The look of what the mask holds and the negative stroke `s` does
+    /// not speak against: K-means centres of the mask's voxels outside the
+    /// stroke's region that are closer to the positive strokes' centres
+    /// than to the negative's. A negative's cut measures the object by
+    /// them as well as by the positive strokes: a stroke on one board of
+    /// the shelf reaches its sides and lower boards through the first cut,
+    /// but their features are far from the stroked board's, and with the
+    /// strokes' centres alone a negative on the books beside them took
+    /// 19,507 of the shelf's 34,894 voxels along (NVOS-style 0.651).
+    fn held_centres(&mut self, cache: &FeatureCache, s: &StrokeRegion, p: &SegmentParams) -> Centroids {
+        let (voxels, rows): (Vec<usize>, Vec<usize>) = self
+            .mask
+            .ones()
+            .filter(|&v| !s.region.get(v))
+            .filter_map(|v| cache.index.slot(v).map(|r| (v, r)))
+            .unzip();
+        let to_object = match &mut self.positive {
+            Some(d) => d.of_rows(cache, &rows),
+            None => {
+                return Centroids {
+                    dim: cache.channels,
+                    data: vec![],
+                }
+            }
+        };
+        let to_negative = nnfm::CentreSet::new(s.dist.centres().clone()).min_distances(cache, &rows);
+        let mut held = Bitmap::new(self.mask.res());
+        for ((&v, a), b) in voxels.iter().zip(&to_object).zip(&to_negative) {
+            if a < b {
+                held.set(v, true);
+            }
+        }
+        mask_centres(cache, &held, p)
     }
 
     fn subtract_competing(
