@@ -557,22 +557,27 @@ fn stroke_centres_leave_out_the_rim_of_a_stroke() {
     assert!(!trimmed.is_empty() && !near_b(&trimmed), "the default drops it");
 }
 
+/// A solid white cube (|p| < 0.6) whose features lie in a plane, at the
+/// angle `angle(x)` (radians) along x.
+fn cube_with_feature_angles(res: usize, angle: impl Fn(f32) -> f32 + Sync) -> Arc<Field> {
+    let feat = move |p: Vec3, out: &mut [f32]| {
+        out.fill(0.0);
+        out[0] = 5.0 * angle(p.x).cos();
+        out[1] = 5.0 * angle(p.x).sin();
+    };
+    Arc::new(FieldBuilder::new(unit_box(), [res; 3]).build(
+        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
+        |_| Vec3::ONE,
+        Some((3, &feat)),
+    ))
+}
+
 #[test]
 fn a_negative_stroke_removes_its_neighbour_not_the_object_it_resembles() {
     // Two touching boxes whose features are 40° apart (‖Δ‖² ≈ 0.47): with
     // θ = 0.6 a stroke on either selects both.
     let a = 40f32.to_radians();
-    let feat = move |p: Vec3, out: &mut [f32]| {
-        let t = if p.x < 0.0 { 0.0 } else { a };
-        out.fill(0.0);
-        out[0] = 5.0 * t.cos();
-        out[1] = 5.0 * t.sin();
-    };
-    let f = Arc::new(FieldBuilder::new(unit_box(), [24; 3]).build(
-        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
-        |_| Vec3::ONE,
-        Some((3, &feat)),
-    ));
+    let f = cube_with_feature_angles(24, move |x| if x < 0.0 { 0.0 } else { a });
     let cache = f.feature_cache().unwrap();
     let scene = Scene::single(f.clone());
     let g = f.geom();
@@ -628,16 +633,7 @@ fn a_negative_stroke_keeps_the_parts_of_the_mask_unlike_the_stroke() {
         }
         .to_radians()
     };
-    let feat = move |p: Vec3, out: &mut [f32]| {
-        out.fill(0.0);
-        out[0] = 5.0 * angle(p.x).cos();
-        out[1] = 5.0 * angle(p.x).sin();
-    };
-    let f = Arc::new(FieldBuilder::new(unit_box(), [32; 3]).build(
-        |p| if p.abs().max_element() < 0.6 { 50.0 } else { 0.0 },
-        |_| Vec3::ONE,
-        Some((3, &feat)),
-    ));
+    let f = cube_with_feature_angles(32, angle);
     let cache = f.feature_cache().unwrap();
     let scene = Scene::single(f.clone());
     let g = f.geom();
