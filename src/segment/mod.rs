@@ -487,9 +487,11 @@ fn voxel_colours(field: Option<&Field>, cache: &FeatureCache, voxels: &[u32]) ->
 /// regions and remember their centres and stroked surfaces. A negative
 /// stroke re-labels the mask and its own region together with the graph cut
 /// ([`cut`]), object seeds under the positive strokes and background seeds
-/// where it touched the mask, its centres joining the background model: it
-/// removes what it touched and whatever looks and joins more like that than
-/// like the object, never the object (with plain subtraction NVOS-style
+/// where it touched the mask, its centres joining the background model and
+/// the look of what the mask already holds joining the object's
+/// ([`MaskBuilder::held_centres`]): it removes what it touched and whatever
+/// looks and joins more like that than like the object, never the object
+/// (with plain subtraction NVOS-style
 /// negatives emptied the mask). What stays is joined to the positive
 /// strokes. Later positive strokes keep the negatives' voxels out. Without
 /// the cut (`cut.rounds` 0), a negative removes the voxels of its region
