@@ -489,7 +489,7 @@ fn voxel_colours(field: Option<&Field>, cache: &FeatureCache, voxels: &[u32]) ->
 /// ([`cut`]), object seeds under the positive strokes and background seeds
 /// where it touched the mask, its centres joining the background model and
 /// the look of what the mask already holds joining the object's
-/// ([`MaskBuilder::held_centres`]): it removes what it touched and whatever
+/// (`MaskBuilder::held_centres`): it removes what it touched and whatever
 /// looks and joins more like that than like the object, never the object
 /// (with plain subtraction NVOS-style
 /// negatives emptied the mask). What stays is joined to the positive
