@@ -489,7 +489,7 @@ fn voxel_colours(field: Option<&Field>, cache: &FeatureCache, voxels: &[u32]) ->
 /// ([`cut`]), object seeds under the positive strokes and background seeds
 /// where it touched the mask, its centres joining the background model and
 /// the look of what the mask already holds joining the object's
-/// (`MaskBuilder::held_centres`): it removes what it touched and whatever
+/// (`held_centres`): it removes what it touched and whatever
 /// looks and joins more like that than like the object, never the object
 /// (with plain subtraction NVOS-style
 /// negatives emptied the mask). What stays is joined to the positive
@@ -688,7 +688,7 @@ impl MaskBuilder {
         let object_distance = match &mut self.positive {
             Some(d) if !d.centres().is_empty() => {
                 let mut stroked = d.of_rows(cache, &rows);
-                let held = self.held_centres(cache, s, p);
+                let held = held_centres(&self.mask, d, cache, s, p);
                 if !held.is_empty() {
                     let held = nnfm::CentreSet::new(held).min_distances(cache, &rows);
                     stroked.iter_mut().zip(held).for_each(|(a, b)| *a = a.min(b));
@@ -724,44 +724,6 @@ impl MaskBuilder {
             self.mask = joined;
         }
         Ok(true)
-    }
-
-    /// The look of what the mask holds and the negative stroke `s` does
-    /// not speak against: K-means centres of the mask's voxels outside the
-    /// stroke's region that are closer to the positive strokes' centres
-    /// than to the negative's. A negative's cut measures the object by
-    /// them as well as by the positive strokes: a stroke on one board of
-    /// the shelf reaches its sides and lower boards through the first cut,
-    /// but their features are far from the stroked board's, and with the
-    /// strokes' centres alone a negative on the books beside them took
-    /// 19,507 of the shelf's 34,894 voxels along (NVOS-style 0.651).
-    fn held_centres(&mut self, cache: &FeatureCache, s: &StrokeRegion, p: &SegmentParams) -> Centroids {
-        let outside: Vec<(usize, usize)> = self
-            .mask
-            .ones()
-            .filter(|&v| !s.region.get(v))
-            .filter_map(|v| cache.index.slot(v).map(|r| (v, r)))
-            .collect();
-        // A strided sample: the centres only summarise the mask's looks,
-        // and with every voxel this took 70–90 ms of a fern negative.
-        let stride = outside.len().div_ceil(HELD_SAMPLE).max(1);
-        let rows: Vec<usize> = outside.iter().step_by(stride).map(|&(_, r)| r).collect();
-        let Some(positive) = &mut self.positive else {
-            return Centroids {
-                dim: cache.channels,
-                data: vec![],
-            };
-        };
-        let to_object = positive.of_rows(cache, &rows);
-        let to_negative = nnfm::CentreSet::new(s.dist.centres().clone()).min_distances(cache, &rows);
-        let held: Vec<usize> = rows
-            .iter()
-            .zip(to_object.iter().zip(&to_negative))
-            .filter(|(_, (a, b))| a < b)
-            .map(|(&r, _)| r)
-            .collect();
-        let sample = unit_feature_sample(cache, &held, false);
-        kmeans_until(&sample, cache.channels, p.k, p.kmeans_seed, HELD_STOP)
     }
 
     fn subtract_competing(
@@ -802,7 +764,44 @@ fn mask_centres(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Centr
     kmeans(&sample, cache.channels, p.k, p.kmeans_seed, p.kmeans_iters)
 }
 
-/// Most voxels of the mask a negative stroke's [`MaskBuilder::held_centres`]
+/// The look of what the mask holds and the negative stroke `s` does
+/// not speak against: K-means centres of the mask's voxels outside the
+/// stroke's region that are closer to the positive strokes' centres
+/// (`positive`) than to the negative's. A negative's cut measures the
+/// object by them as well as by the positive strokes: a stroke on one board of
+/// the shelf reaches its sides and lower boards through the first cut,
+/// but their features are far from the stroked board's, and with the
+/// strokes' centres alone a negative on the books beside them took
+/// 19,507 of the shelf's 34,894 voxels along (NVOS-style 0.651).
+fn held_centres(
+    mask: &Bitmap,
+    positive: &mut nnfm::StrokeDistances,
+    cache: &FeatureCache,
+    s: &StrokeRegion,
+    p: &SegmentParams,
+) -> Centroids {
+    let outside: Vec<usize> = mask
+        .ones()
+        .filter(|&v| !s.region.get(v))
+        .filter_map(|v| cache.index.slot(v))
+        .collect();
+    // A strided sample: the centres only summarise the mask's looks,
+    // and with every voxel this took 70–90 ms of a fern negative.
+    let stride = outside.len().div_ceil(HELD_SAMPLE).max(1);
+    let rows: Vec<usize> = outside.into_iter().step_by(stride).collect();
+    let to_object = positive.of_rows(cache, &rows);
+    let to_negative = nnfm::CentreSet::new(s.dist.centres().clone()).min_distances(cache, &rows);
+    let held: Vec<usize> = rows
+        .iter()
+        .zip(to_object.iter().zip(&to_negative))
+        .filter(|(_, (a, b))| a < b)
+        .map(|(&r, _)| r)
+        .collect();
+    let sample = unit_feature_sample(cache, &held, false);
+    kmeans_until(&sample, cache.channels, p.k, p.kmeans_seed, HELD_STOP)
+}
+
+/// Most voxels of the mask a negative stroke's [`held_centres`]
 /// look at, and when their K-means stops (no centre moving by 1 % of
 /// the spread).
 const HELD_SAMPLE: usize = 5_000;
