@@ -13,10 +13,9 @@
 //! stand-in for distillation: a surface point's feature is the mean of the
 //! teacher features of the pixels that see it. Stored points no ray reached
 //! (hidden interiors) take the mean of their reached neighbours, a few
-//! rounds. The features are then centred on the reached points, each
-//! cluster of them counted once (see `Accumulator::centre_of_seen`). The
-//! result is a sparse 8-bit feature grid at the density resolution over
-//! the field's occupancy.
+//! rounds. The features are then centred on the mean of the reached points
+//! (see `Accumulator::mean_of_seen`). The result is a sparse 8-bit feature
+//! grid at the density resolution over the field's occupancy.
 
 use crate::camera::{Camera, Intrinsics};
 use crate::data::Image;
@@ -279,56 +278,31 @@ impl Accumulator {
                 known[s] = true;
             }
         }
-        let mean = self.centre_of_seen();
+        let mean = self.mean_of_seen();
         self.sum
             .par_chunks(c)
             .flat_map_iter(|row| row.iter().zip(&mean).map(|(v, m)| f16::from_f32(v - m)))
             .collect()
     }
 
-    /// The centre the features are taken from: the teacher's PCA is
+    /// Mean feature of the points some ray reached. The teacher's PCA is
     /// centred over every pixel of the views, background included, so the
     /// scene's points share an offset that dominates their unit-length
     /// comparisons (on a demo scene every pair of objects within 0.4 in
-    /// squared distance, below the seed threshold); subtracting a centre of
-    /// the scene's own points leaves their differences. See
-    /// [`balanced_mean`] for which centre.
-    fn centre_of_seen(&self) -> Vec<f32> {
+    /// squared distance, below the seed threshold); subtracting it leaves
+    /// their differences.
+    fn mean_of_seen(&self) -> Vec<f32> {
         let c = self.channels;
-        let seen: Vec<usize> = (0..self.weight.len()).filter(|&s| self.weight[s] > 0.0).collect();
-        let stride = (seen.len() / CENTRE_SAMPLE).max(1);
-        let rows: Vec<f32> = seen
-            .iter()
-            .step_by(stride)
-            .flat_map(|&s| self.sum[s * c..(s + 1) * c].iter().copied())
-            .collect();
-        balanced_mean(&rows, c)
+        let mut mean = vec![0f64; c];
+        let mut n = 0usize;
+        for (row, &w) in self.sum.chunks(c).zip(&self.weight) {
+            if w > 0.0 {
+                mean.iter_mut().zip(row).for_each(|(m, v)| *m += *v as f64);
+                n += 1;
+            }
+        }
+        mean.iter().map(|m| (m / n.max(1) as f64) as f32).collect()
     }
-}
-
-/// Seen points sampled (evenly strided) for the centre.
-const CENTRE_SAMPLE: usize = 20_000;
-/// K-means clusters whose centres are averaged.
-const CENTRE_CLUSTERS: usize = 16;
-
-/// The mean of `rows`' K-means centres (`dim` channels each), each
-/// cluster counted once whatever its size. The plain mean of the points
-/// sits near whatever covers most of the scene (a floor and a wall are
-/// four fifths of the tabletop's points), so subtracting it shrinks that
-/// surface's own direction to a fraction of its spread and its unit
-/// features scatter: on the splat benchmark (`isrf bench splats --scenes
-/// tabletop`, kmeans seeds 0 / 1 / 2) the ViT rows' mean IoU went from
-/// 0.536 / 0.530 / 0.541 with the plain mean to 0.580 / 0.580 / 0.588 with
-/// this one (the table 0.26 → 0.42, the pot 0.80 → 0.90; 8 or 32 clusters
-/// score the same), the shelf scene level (0.576 → 0.579).
-fn balanced_mean(rows: &[f32], dim: usize) -> Vec<f32> {
-    let centres = crate::segment::kmeans::kmeans(rows, dim, CENTRE_CLUSTERS, 0, 30);
-    let mut mean = vec![0f32; dim];
-    let k = centres.len().max(1) as f32;
-    for i in 0..centres.len() {
-        mean.iter_mut().zip(centres.row(i)).for_each(|(m, v)| *m += v / k);
-    }
-    mean
 }
 
 /// Marches pixel (x, y)'s ray through the field's density like the
@@ -391,27 +365,4 @@ fn group_by_slot(triples: &[(u32, u32, f32)], slots: usize) -> (Vec<usize>, Vec<
         next[t.0 as usize] += 1;
     }
     (starts, order)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Nine points of one kind for each of another: the plain mean sits
-    /// near the crowd (0.9, 0.1, 0.5), the balanced one halfway between the
-    /// two kinds.
-    #[test]
-    fn the_centre_counts_each_cluster_once_not_each_point() {
-        let (a, b) = ([1.0f32, 0.0, 0.5], [0.0f32, 1.0, 0.5]);
-        let mut rows = vec![];
-        for i in 0..1000 {
-            let jitter = 0.01 * ((i % 7) as f32 - 3.0);
-            let p = if i % 10 == 0 { b } else { a };
-            rows.extend(p.iter().map(|v| v + jitter));
-        }
-        let m = balanced_mean(&rows, 3);
-        for (got, want) in m.iter().zip([0.5, 0.5, 0.5]) {
-            assert!((got - want).abs() < 0.02, "balanced centre {m:?}");
-        }
-    }
 }
