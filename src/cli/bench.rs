@@ -46,9 +46,10 @@ pub struct QualityArgs {
     /// Image width (400 divided by a whole number; 4:3 images).
     #[arg(long, default_value_t = 200)]
     pub width: u32,
-    /// Radiance iterations. `isrf train` runs 5000 (Blender preset); the
-    /// default is fewer so that a scene trains in about 15 minutes on two
-    /// cores (the table's header says so).
+    /// Radiance iterations. `isrf train` runs 9500 (Blender preset; with
+    /// `--feature-iters 1500` as it does, about 1 hour for both scenes on
+    /// two cores, cached after); the default is fewer so that a scene trains
+    /// in about 15 minutes (the table's header says so).
     #[arg(long, default_value_t = 2000)]
     pub iters: usize,
     /// Distillation iterations (`isrf train` runs 1500).
