@@ -284,6 +284,34 @@ fn colour_centres(
     Some(fit(&flat, 3, k, seed, warm))
 }
 
+/// A colour farther than this (squared RGB distance) from every colour
+/// centre of the voxels under the stroke does not look like the stroke.
+const COLOUR_UNLIKE: f32 = 0.02;
+
+/// Share of the domain whose colour does not look like the stroke's (see
+/// [`COLOUR_UNLIKE`]; centres as the cut's object colour model); 0
+/// without colours or voxels under the stroke.
+pub fn unlike_colour_share(input: &CutInput, kmeans_seed: u64) -> f32 {
+    if input.colours.is_empty() || input.domain.is_empty() {
+        return 0.0;
+    }
+    // Both lists ascend: flag the domain's voxels under the stroke in one walk.
+    let mut under = vec![false; input.domain.len()];
+    let mut h = input.hard.iter().peekable();
+    for (i, &v) in input.domain.iter().enumerate() {
+        while h.next_if(|&&x| x < v).is_some() {}
+        under[i] = h.peek() == Some(&&v);
+    }
+    let Some(centres) = colour_centres(input.colours, &under, 5, kmeans_seed, None) else {
+        return 0.0;
+    };
+    let far = colour_distances(input.colours, &centres, 1.0)
+        .iter()
+        .filter(|&&d| d > COLOUR_UNLIKE)
+        .count();
+    far as f32 / input.domain.len() as f32
+}
+
 /// The background and colour models' Lloyd iterations stop once no centre
 /// moves by 1 % of the points' spread: on the fern their centres creep
 /// by 0.5 % an iteration for tens of iterations (30 feature iterations
@@ -444,6 +472,44 @@ mod tests {
                 out.copy_from_slice(&f);
             })),
         )
+    }
+
+    /// Known answers: the bar is 14 red slices and 10 blue ones; a stroke
+    /// on the red end finds the 10 blue slices unlike it, one on the blue
+    /// end the 14 red ones.
+    #[test]
+    fn the_unlike_colour_share_counts_the_domain_unlike_the_stroke() {
+        let field = bar();
+        let cache = FeatureCache::build(&field).unwrap();
+        let res = cache.geom.res;
+        let domain: Vec<u32> = cache.voxels.clone();
+        let mut s = field.sampler();
+        let colours: Vec<Vec3> = domain
+            .iter()
+            .map(|&v| s.diffuse_color(cache.geom.point_of(v as usize)))
+            .collect();
+        let zeros = vec![0.0; domain.len()];
+        let region = Bitmap::new(res);
+        for (slice, want) in [(0, 10.0 / 24.0), (23, 14.0 / 24.0)] {
+            let hard: Vec<u32> = domain
+                .iter()
+                .copied()
+                .filter(|&v| v as usize % res[0] == slice)
+                .collect();
+            let input = CutInput {
+                cache: &cache,
+                domain: &domain,
+                colours: &colours,
+                object_distance: &zeros,
+                region: &region,
+                hard: &hard,
+                background_hard: &[],
+                known_background: None,
+                unlike: 0.0,
+            };
+            let got = unlike_colour_share(&input, 0);
+            assert!((got - want).abs() < 1e-6, "stroke on slice {slice}: {got}, want {want}");
+        }
     }
 
     fn xs(bits: &Bitmap, res: [usize; 3]) -> std::collections::BTreeSet<usize> {
