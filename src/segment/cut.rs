@@ -474,20 +474,26 @@ mod tests {
         )
     }
 
+    /// The bar's cache, its solid voxels (every voxel) and their colours.
+    fn bar_cache() -> (FeatureCache, Vec<u32>, Vec<Vec3>) {
+        let field = bar();
+        let cache = FeatureCache::build(&field).unwrap();
+        let domain: Vec<u32> = cache.voxels.clone();
+        let mut s = field.sampler();
+        let colours = domain
+            .iter()
+            .map(|&v| s.diffuse_color(cache.geom.point_of(v as usize)))
+            .collect();
+        (cache, domain, colours)
+    }
+
     /// Known answers: the bar is 14 red slices and 10 blue ones; a stroke
     /// on the red end finds the 10 blue slices unlike it, one on the blue
     /// end the 14 red ones.
     #[test]
     fn the_unlike_colour_share_counts_the_domain_unlike_the_stroke() {
-        let field = bar();
-        let cache = FeatureCache::build(&field).unwrap();
+        let (cache, domain, colours) = bar_cache();
         let res = cache.geom.res;
-        let domain: Vec<u32> = cache.voxels.clone();
-        let mut s = field.sampler();
-        let colours: Vec<Vec3> = domain
-            .iter()
-            .map(|&v| s.diffuse_color(cache.geom.point_of(v as usize)))
-            .collect();
         let zeros = vec![0.0; domain.len()];
         let region = Bitmap::new(res);
         for (slice, want) in [(0, 10.0 / 24.0), (23, 14.0 / 24.0)] {
@@ -518,16 +524,9 @@ mod tests {
 
     #[test]
     fn the_cut_moves_a_blurred_boundary_to_the_colour_edge() {
-        let field = bar();
-        let cache = FeatureCache::build(&field).unwrap();
+        let (cache, domain, colours) = bar_cache();
         let res = cache.geom.res;
-        let domain: Vec<u32> = cache.voxels.clone();
         assert_eq!(domain.len(), 24 * 8 * 8);
-        let mut s = field.sampler();
-        let colours: Vec<Vec3> = domain
-            .iter()
-            .map(|&v| s.diffuse_color(cache.geom.point_of(v as usize)))
-            .collect();
         // The region before the cut runs to the feature edge at x = 16.
         let region = Bitmap::from_fn(res, |v| v % res[0] < 16);
         let hard: Vec<u32> = domain.iter().copied().filter(|&v| v as usize % res[0] == 0).collect();
