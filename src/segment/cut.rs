@@ -302,13 +302,12 @@ pub fn unlike_colour_share(input: &CutInput, kmeans_seed: u64) -> f32 {
         while h.next_if(|&&x| x < v).is_some() {}
         under[i] = h.peek() == Some(&&v);
     }
-    let Some(centres) = colour_centres(input.colours, &under, 5, kmeans_seed, None) else {
+    // The object colour model `refine` fits (γ 1: plain squared distances).
+    let (distance, centres) = colour_term(input.colours, &under, 5, kmeans_seed, 1.0, None);
+    if centres.is_none() {
         return 0.0;
-    };
-    let far = colour_distances(input.colours, &centres, 1.0)
-        .iter()
-        .filter(|&&d| d > COLOUR_UNLIKE)
-        .count();
+    }
+    let far = distance.iter().filter(|&&d| d > COLOUR_UNLIKE).count();
     far as f32 / input.domain.len() as f32
 }
 

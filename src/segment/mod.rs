@@ -485,7 +485,7 @@ fn cut_region(
     let background = (s.reached.iter().zip(&object_distance))
         .filter(|&(&v, &d)| d > unlike && !s.region.get(v as usize))
         .count();
-    if background * NO_BACKGROUND < s.reached.len() && cut::unlike_colour_share(&input, p.kmeans_seed) > 0.5 {
+    if background * NO_BACKGROUND < s.reached.len() && cut::unlike_colour_share(&input, p.kmeans_seed) > MOSTLY_UNLIKE {
         input.region = seeds;
         input.unlike = p.theta;
     }
@@ -496,6 +496,9 @@ fn cut_region(
 /// A flood that leaves fewer than 1/this of the voxels it reached for the
 /// cut's background has found no boundary.
 const NO_BACKGROUND: usize = 20;
+/// Past this share of the flood unlike the stroke's colours, the features'
+/// flood is not trusted ([`cut_region`]).
+const MOSTLY_UNLIKE: f32 = 0.5;
 
 /// The diffuse colour (cached per field) of each of `voxels`, solid
 /// voxels of `cache`'s grid; none when the cut has no field to colour by.
