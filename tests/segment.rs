@@ -769,3 +769,73 @@ fn strokes_segmented_on_the_coarse_grid_give_the_fine_answer_on_block_aligned_ob
     b.stroke(&scene, &cache, &pos, Polarity::Positive, &params).unwrap();
     assert_eq!(b.mask, both);
 }
+
+/// Red and blue boxes side by side with the same features, standing on a
+/// grey floor whose features are a little unlike theirs (squared distance
+/// 0.7 between unit features); the red box's solid voxels.
+fn boxes_on_a_floor() -> (Arc<Field>, Bitmap) {
+    let f = Arc::new(FieldBuilder::new(unit_box(), [32; 3]).build(
+        |p| {
+            let in_box = p.x.abs() < 0.5 && p.y.abs() < 0.3 && p.z.abs() < 0.3;
+            let floor = (-0.6..-0.3).contains(&p.y) && p.x.abs() < 0.9 && p.z.abs() < 0.9;
+            if in_box || floor {
+                50.0
+            } else {
+                0.0
+            }
+        },
+        |p| match () {
+            _ if p.y < -0.3 => Vec3::splat(0.5),
+            _ if p.x < 0.0 => Vec3::X,
+            _ => Vec3::Z,
+        },
+        Some((2, &|p: Vec3, out: &mut [f32]| {
+            let f = if p.y < -0.3 { [0.65, 0.76] } else { [1.0, 0.0] };
+            out.copy_from_slice(&f);
+        })),
+    ));
+    let cache = f.feature_cache().unwrap();
+    let g = f.geom();
+    let red = Bitmap::from_fn(g.res, |v| {
+        let p = g.point_of(v);
+        p.x < 0.0 && p.y > -0.3 && cache.index.slot(v).is_some()
+    });
+    (f, red)
+}
+
+#[test]
+fn a_stroke_beside_a_touching_neighbour_does_not_tie_it_to_the_object() {
+    // The stroke ends a voxel from the blue box: the voxels within the
+    // anchors' two-voxel margin reach into it. They do not look like
+    // anything the stroke shows (red), so they are not tied to the object,
+    // and the cut's colour model leaves the blue box out, which looks like
+    // the red one in features alone.
+    let (f, red) = boxes_on_a_floor();
+    let cache = f.feature_cache().unwrap();
+    let scene = Scene::single(f.clone());
+    let k = Intrinsics::from_fov_x(64, 48, 0.9);
+    let cam = Camera::look_at(k, Vec3::new(0.2, 0.4, 3.0), Vec3::ZERO, Vec3::Y);
+    let (end, _) = cam.project(Vec3::new(-0.1, 0.1, 0.3)).unwrap();
+    let stroke = Stroke {
+        camera: cam,
+        points: vec![end - Vec2::new(3.0, 0.0), end],
+        radius: 1,
+        polarity: Polarity::Positive,
+        object: "red".into(),
+        joined: true,
+    };
+    let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(f.geom().res));
+    b.stroke(&scene, &cache, &stroke, Polarity::Positive, &SegmentParams::default())
+        .unwrap();
+    let mut extra = b.mask.clone();
+    extra.subtract(&red).unwrap();
+    let mut missed = red.clone();
+    missed.subtract(&b.mask).unwrap();
+    assert!(
+        extra.count() == 0 && missed.count() * 20 < red.count(),
+        "{} voxels selected outside the red box, {} of its {} missed",
+        extra.count(),
+        missed.count(),
+        red.count()
+    );
+}

@@ -231,8 +231,7 @@ pub struct RenderOptions {
     pub depth: bool,
     pub layer_opacity: bool,
     /// Shade colour (off: `color` holds only the background's share, for
-    /// callers that want features, depth or opacity alone: a stroke's
-    /// pixels).
+    /// callers that want features, depth or opacity alone).
     pub colour: bool,
     /// Rays stop when the transmittance drops below this.
     pub min_transmittance: f32,

@@ -88,6 +88,55 @@ pub fn near_anchors(bits: &Bitmap, anchors: &[u32], radius: isize) -> Vec<u32> {
     out
 }
 
+/// A voxel near the stroke's surface whose colour is farther than this
+/// (squared RGB distance) from every colour the stroke's pixels show is
+/// not what the user stroked.
+const UNSEEN_COLOUR: f32 = 0.3;
+
+/// The voxels of `near` (solid voxels of `cache` near the stroke's
+/// surface, ascending) that look like something the stroke's pixels show
+/// (`stroke_colours`). The anchors' margin reaches past the stroked
+/// surface into a touching neighbour: on the realistic benchmark the
+/// mug's stroke tied 57 voxels of the blue box pushed against it to the
+/// object, and the graph cut kept the whole box. All of `near` when
+/// there are no colours or none of it looks like the stroke.
+pub fn seen_by_stroke(cache: &FeatureCache, near: Vec<u32>, stroke_colours: &[Vec3]) -> Vec<u32> {
+    if cache.colours.is_empty() || stroke_colours.is_empty() {
+        return near;
+    }
+    let stroke_colours = distinct_colours(stroke_colours);
+    let seen: Vec<u32> = near
+        .iter()
+        .copied()
+        .filter(|&v| {
+            cache.index.slot(v as usize).is_some_and(|r| {
+                let c = cache.colours[r];
+                stroke_colours
+                    .iter()
+                    .any(|s| (*s - c).length_squared() <= UNSEEN_COLOUR)
+            })
+        })
+        .collect();
+    if seen.is_empty() {
+        near
+    } else {
+        seen
+    }
+}
+
+/// `colours` rounded to 1/64 and without repeats: an object's strokes show
+/// a few hundred distinct colours at that step, not one per pixel (the
+/// rounding, under 0.008 a channel, is nothing against [`UNSEEN_COLOUR`]).
+fn distinct_colours(colours: &[Vec3]) -> Vec<Vec3> {
+    let key = |c: &Vec3| c.to_array().map(|x| (x.clamp(0.0, 1.0) * 64.0).round() as u8);
+    let mut keys: Vec<[u8; 3]> = colours.iter().map(key).collect();
+    keys.sort_unstable();
+    keys.dedup();
+    keys.iter()
+        .map(|k| Vec3::from_array(k.map(|x| x as f32 / 64.0)))
+        .collect()
+}
+
 /// In-grid voxels of the cube of half-side `r` around voxel `v`.
 fn block(res: [usize; 3], v: usize, r: isize) -> impl Iterator<Item = usize> {
     let [nx, ny, nz] = res.map(|n| n as isize);
@@ -128,5 +177,44 @@ mod tests {
         let mut lone = Bitmap::new(res);
         lone.set(idx(11, 0, 0), true);
         assert!(joined_seeds(&lone, &[idx(0, 3, 3) as u32], ANCHOR_RADIUS).is_none());
+    }
+
+    /// Known answers on a solid bar, red for x < 12.5 and blue past it: the
+    /// voxels within two of an anchor at x = 11 reach one blue slice;
+    /// a stroke that shows red keeps only the red ones, a stroke that
+    /// shows something like neither, or no colour, keeps them all.
+    #[test]
+    fn voxels_near_the_stroke_unlike_what_it_shows_are_left_out() {
+        use crate::field::{Aabb, FieldBuilder};
+        let field = FieldBuilder::new(Aabb::new(Vec3::ZERO, Vec3::new(23.0, 7.0, 7.0)), [24, 8, 8]).build(
+            |_| 50.0,
+            |p| if p.x < 12.5 { Vec3::X } else { Vec3::Z },
+            Some((1, &|_p: Vec3, out: &mut [f32]| out[0] = 1.0)),
+        );
+        let cache = FeatureCache::build(&field).unwrap();
+        let res = cache.geom.res;
+        let idx = |x: usize, y: usize, z: usize| x + 24 * (y + 8 * z);
+        let all = Bitmap::from_fn(res, |_| true);
+        let near = near_anchors(&all, &[idx(11, 4, 4) as u32], ANCHOR_RADIUS);
+        assert_eq!(near.len(), 5 * 5 * 5);
+        let slices = |v: &[u32]| {
+            let mut x: Vec<usize> = v.iter().map(|&v| v as usize % 24).collect();
+            x.sort_unstable();
+            x.dedup();
+            x
+        };
+        // Shades of the red the stroke saw still count as red.
+        let seen = seen_by_stroke(
+            &cache,
+            near.clone(),
+            &[Vec3::new(0.9, 0.1, 0.0), Vec3::new(0.7, 0.0, 0.1)],
+        );
+        assert_eq!(slices(&seen), vec![9, 10, 11, 12]);
+        assert_eq!(seen.len(), 4 * 25);
+        let seen = seen_by_stroke(&cache, near.clone(), &[Vec3::new(0.0, 0.0, 0.8)]);
+        assert_eq!(slices(&seen), vec![13]);
+        let green = seen_by_stroke(&cache, near.clone(), &[Vec3::Y]);
+        assert_eq!(green, near, "nothing looks like the stroke: all kept");
+        assert_eq!(seen_by_stroke(&cache, near.clone(), &[]), near);
     }
 }

@@ -346,7 +346,8 @@ pub fn region_from_features(
     p: &SegmentParams,
     t: &mut Timings,
 ) -> Result<Bitmap> {
-    segment_anchored(cache, None, feats, dim, &[], &Negatives::default(), p, t).map(|(region, _)| region)
+    let stroke = StrokeLook::default();
+    segment_anchored(cache, None, feats, dim, &stroke, &Negatives::default(), p, t).map(|(region, _)| region)
 }
 
 /// What the negative strokes of an object said so far: the graph cut of a
@@ -371,9 +372,17 @@ impl Negatives {
     }
 }
 
+/// Where a stroke lies in the field: the voxels under it and the colours
+/// its pixels show (both empty for features given without a stroke).
+#[derive(Default)]
+struct StrokeLook<'a> {
+    anchors: &'a [u32],
+    colours: &'a [glam::Vec3],
+}
+
 /// [`region_from_features`], also returning the stroke's NNFM distances
 /// (and K-means centres);
-/// with `anchors` (voxels under the stroke), only the seeds joined to them
+/// with `stroke.anchors` (voxels under the stroke), only the seeds joined to them
 /// are kept, and the stable rule's region is refined by a graph cut (with
 /// the colours of `field`, the field that owns `cache`, when given) that
 /// respects the object's earlier `negatives`.
@@ -383,7 +392,7 @@ fn segment_anchored(
     field: Option<&Field>,
     feats: &[f32],
     dim: usize,
-    anchors: &[u32],
+    stroke: &StrokeLook,
     negatives: &Negatives,
     p: &SegmentParams,
     t: &mut Timings,
@@ -402,6 +411,7 @@ fn segment_anchored(
         _ => p.sigma_floor(cache.voxel_size),
     };
     let (mut region, mut dist) = nnfm::nnfm_seed_with_distances(cache, &centres, p.theta, floor);
+    let anchors = stroke.anchors;
     if let Some(joined) = anchor::joined_seeds(&region, anchors, anchor::radius(cache)) {
         region = joined;
     }
@@ -414,7 +424,10 @@ fn segment_anchored(
         t.grow_steps = 1;
         t.threshold = s.threshold;
         let t0 = Instant::now();
-        let hard = anchor::near_anchors(&region, anchors, anchor::radius(cache));
+        let mut hard = anchor::near_anchors(&region, anchors, anchor::radius(cache));
+        if field.is_some() {
+            hard = anchor::seen_by_stroke(cache, hard, stroke.colours);
+        }
         let region = cut_region(
             cache, field, &mut dist, &s, &region, &hard, anchors, negatives, p, &mut t.cut,
         )
@@ -530,6 +543,8 @@ pub struct MaskBuilder {
     pub mask: Bitmap,
     /// Voxels under the positive strokes so far, ascending.
     positive_anchors: Vec<u32>,
+    /// The colours the positive strokes' pixels showed.
+    positive_colours: Vec<glam::Vec3>,
     /// The positive strokes' centres so far, concatenated, with the
     /// distances to them as far as measured: a negative stroke's cut needs
     /// them over the whole mask.
@@ -546,6 +561,7 @@ impl MaskBuilder {
         MaskBuilder {
             mask,
             positive_anchors: vec![],
+            positive_colours: vec![],
             positive: None,
             negatives: Negatives::default(),
             coarse: None,
@@ -644,6 +660,7 @@ impl MaskBuilder {
                 self.positive_anchors.extend_from_slice(&s.anchors);
                 self.positive_anchors.sort_unstable();
                 self.positive_anchors.dedup();
+                self.positive_colours.extend_from_slice(&s.colours);
                 match &mut self.positive {
                     Some(d) => d.merge(cache, s.dist),
                     none => *none = Some(s.dist),
@@ -712,7 +729,10 @@ impl MaskBuilder {
             .map(|v| v as u32)
             .collect();
         let colours = voxel_colours(field, cache, &domain);
-        let hard = anchor::near_anchors(&self.mask, &self.positive_anchors, anchor::radius(cache));
+        let mut hard = anchor::near_anchors(&self.mask, &self.positive_anchors, anchor::radius(cache));
+        if field.is_some() {
+            hard = anchor::seen_by_stroke(cache, hard, &self.positive_colours);
+        }
         let rows = cut::rows_of(cache, &domain);
         let object_distance = match &mut self.positive {
             Some(d) if !d.centres().is_empty() => {
@@ -896,6 +916,8 @@ struct StrokeRegion {
     dist: nnfm::StrokeDistances,
     /// The voxels under the stroke (its surface), ascending.
     anchors: Vec<u32>,
+    /// The colours its pixels show.
+    colours: Vec<glam::Vec3>,
 }
 
 /// [`region_from_stroke`] for an object with earlier `negatives`, also
@@ -925,17 +947,30 @@ fn segment_stroke(
     }
     t.stroke_features_ms = ms_since(t0);
     let field = anchor::layer_of(scene, owner).map(|l| &*l.field);
+    let look = StrokeLook {
+        anchors: &anchors,
+        colours: &samples.colours,
+    };
     let (region, dist) = segment_anchored(
         cache,
         field,
         &samples.features,
         samples.channels,
-        &anchors,
+        &look,
         negatives,
         p,
         &mut t,
     )?;
-    Ok((StrokeRegion { region, dist, anchors }, t))
+    let colours = samples.colours;
+    Ok((
+        StrokeRegion {
+            region,
+            dist,
+            anchors,
+            colours,
+        },
+        t,
+    ))
 }
 
 /// Applies a stroke's region to an object mask: union for positive strokes,

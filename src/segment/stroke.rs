@@ -133,6 +133,9 @@ pub struct StrokeSamples {
     /// The expected hit point of each kept pixel's ray (its depth over its
     /// opacity, in the space of the stroke camera's rays).
     pub hits: Vec<glam::Vec3>,
+    /// The colour each kept pixel shows of the surface (its rendered colour
+    /// less the background's share, over its opacity).
+    pub colours: Vec<glam::Vec3>,
 }
 
 /// [`stroke_features`] with the surface points of the kept pixels.
@@ -142,7 +145,6 @@ pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<Str
     let opts = RenderOptions {
         features: true,
         depth: true,
-        colour: false,
         ..Default::default()
     };
     let out = render_rays(scene, &rays, &opts)?;
@@ -153,6 +155,7 @@ pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<Str
     );
     let mut feats = Vec::with_capacity(px.len() * c);
     let mut hits = Vec::with_capacity(px.len());
+    let mut colours = Vec::with_capacity(px.len());
     for (i, &o) in out.opacity.iter().enumerate() {
         if o < min_opacity {
             continue;
@@ -162,6 +165,7 @@ pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<Str
         if n > 1e-12 {
             feats.extend(f.iter().map(|x| x / n));
             hits.push(rays[i].origin + rays[i].dir * (out.depth[i] / o));
+            colours.push((out.color[i] - (1.0 - o) * scene.background) / o);
         }
     }
     ensure!(
@@ -174,6 +178,7 @@ pub fn stroke_samples(scene: &Scene, s: &Stroke, min_opacity: f32) -> Result<Str
         features: feats,
         channels: c,
         hits,
+        colours,
     })
 }
 
