@@ -839,3 +839,71 @@ fn a_stroke_beside_a_touching_neighbour_does_not_tie_it_to_the_object() {
         red.count()
     );
 }
+
+/// An off-white wall (|x| < 0.9, |y| < 0.5, |z| < 0.15) whose features turn
+/// steadily along x, from 0° at its left end to 80° at its right, standing
+/// on a brown floor whose features are 60° out of their plane (squared
+/// distance about 1 from the wall's left end); the wall's solid voxels and
+/// the floor's.
+fn drifting_wall_on_a_floor() -> (Arc<Field>, Bitmap, Bitmap) {
+    let wall = |p: Vec3| p.x.abs() < 0.9 && p.y.abs() < 0.5 && p.z.abs() < 0.15;
+    let floor = |p: Vec3| (-0.8..=-0.5).contains(&p.y) && p.x.abs() < 0.9 && p.z.abs() < 0.9;
+    let f = Arc::new(FieldBuilder::new(unit_box(), [32; 3]).build(
+        move |p| if wall(p) || floor(p) { 50.0 } else { 0.0 },
+        // Empty space takes the wall's colour and features, so that the
+        // wall's surface (interpolated between solid and empty grid points)
+        // shows them.
+        move |p| {
+            if floor(p) {
+                Vec3::new(0.5, 0.3, 0.1)
+            } else {
+                Vec3::new(0.9, 0.9, 0.85)
+            }
+        },
+        Some((3, &move |p: Vec3, out: &mut [f32]| {
+            let f = if floor(p) {
+                let b = 60f32.to_radians();
+                [b.cos(), 0.0, b.sin()]
+            } else {
+                let a = (p.x.clamp(-0.9, 0.9) + 0.9) / 1.8 * 80f32.to_radians();
+                [a.cos(), a.sin(), 0.0]
+            };
+            out.copy_from_slice(&f);
+        })),
+    ));
+    let cache = f.feature_cache().unwrap();
+    let g = f.geom();
+    let solid = |v: usize| cache.index.slot(v).is_some();
+    let walls = Bitmap::from_fn(g.res, |v| g.point_of(v).y > -0.5 && solid(v));
+    let floors = Bitmap::from_fn(g.res, |v| g.point_of(v).y <= -0.5 && solid(v));
+    (f, walls, floors)
+}
+
+#[test]
+fn a_stroke_on_a_surface_whose_features_drift_takes_it_whole() {
+    // No threshold is stable along the wall: the region grows steadily as
+    // it rises, and the flood reaches the floor before the wall's far end.
+    // The wall's far parts, unlike the stroke in features but showing its
+    // colour, must not stand for the background in the cut, which then
+    // takes the whole wall, up to its colour edge with the floor.
+    let (f, wall, floor) = drifting_wall_on_a_floor();
+    let cache = f.feature_cache().unwrap();
+    let scene = Scene::single(f.clone());
+    let s = stroke_on(&f, Vec3::new(-0.75, 0.1, 0.15), "wall", Polarity::Positive);
+    let (region, t) = region_from_stroke(&scene, &cache, &s, &SegmentParams::default()).unwrap();
+    assert!(
+        t.seed_voxels * 10 < wall.count() * 8,
+        "the seeds miss the wall's far end"
+    );
+    let mut missed = wall.clone();
+    missed.subtract(&region).unwrap();
+    let mut on_floor = floor.clone();
+    on_floor.intersect_with(&region).unwrap();
+    assert!(
+        missed.count() * 20 < wall.count() && on_floor.count() * 20 < region.count(),
+        "{} of the wall's {} voxels missed, {} of the floor's taken",
+        missed.count(),
+        wall.count(),
+        on_floor.count()
+    );
+}

@@ -10,6 +10,7 @@
 //! other seeds (26-connected) are kept. `SegmentParams::connected = false`
 //! keeps the paper's global matching (select every look-alike at once).
 
+use super::palette::Palette;
 use crate::field::runs::Runs;
 use crate::field::{Bitmap, FeatureCache};
 use crate::render::{Layer, Scene};
@@ -95,46 +96,25 @@ const UNSEEN_COLOUR: f32 = 0.3;
 
 /// The voxels of `near` (solid voxels of `cache` near the stroke's
 /// surface, ascending) that look like something the stroke's pixels show
-/// (`stroke_colours`). The anchors' margin reaches past the stroked
-/// surface into a touching neighbour: on the realistic benchmark the
-/// mug's stroke tied 57 voxels of the blue box pushed against it to the
-/// object, and the graph cut kept the whole box. All of `near` when
-/// there are no colours or none of it looks like the stroke.
-pub fn seen_by_stroke(cache: &FeatureCache, near: Vec<u32>, stroke_colours: &[Vec3]) -> Vec<u32> {
-    if cache.colours.is_empty() || stroke_colours.is_empty() {
+/// (`palette`). The anchors' margin reaches past the stroked surface into
+/// a touching neighbour: on the realistic benchmark the mug's stroke tied
+/// 57 voxels of the blue box pushed against it to the object, and the
+/// graph cut kept the whole box. All of `near` when there are no colours
+/// or none of it looks like the stroke.
+pub fn seen_by_stroke(cache: &FeatureCache, near: Vec<u32>, palette: &Palette) -> Vec<u32> {
+    if cache.colours.is_empty() || palette.is_empty() {
         return near;
     }
-    let stroke_colours = distinct_colours(stroke_colours);
     let seen: Vec<u32> = near
         .iter()
         .copied()
-        .filter(|&v| {
-            cache.index.slot(v as usize).is_some_and(|r| {
-                let c = cache.colours[r];
-                stroke_colours
-                    .iter()
-                    .any(|s| (*s - c).length_squared() <= UNSEEN_COLOUR)
-            })
-        })
+        .filter(|&v| (cache.index.slot(v as usize)).is_some_and(|r| palette.shows(cache.colours[r], UNSEEN_COLOUR)))
         .collect();
     if seen.is_empty() {
         near
     } else {
         seen
     }
-}
-
-/// `colours` rounded to 1/64 and without repeats: an object's strokes show
-/// a few hundred distinct colours at that step, not one per pixel (the
-/// rounding, under 0.008 a channel, is nothing against [`UNSEEN_COLOUR`]).
-fn distinct_colours(colours: &[Vec3]) -> Vec<Vec3> {
-    let key = |c: &Vec3| c.to_array().map(|x| (x.clamp(0.0, 1.0) * 64.0).round() as u8);
-    let mut keys: Vec<[u8; 3]> = colours.iter().map(key).collect();
-    keys.sort_unstable();
-    keys.dedup();
-    keys.iter()
-        .map(|k| Vec3::from_array(k.map(|x| x as f32 / 64.0)))
-        .collect()
 }
 
 /// In-grid voxels of the cube of half-side `r` around voxel `v`.
@@ -207,14 +187,14 @@ mod tests {
         let seen = seen_by_stroke(
             &cache,
             near.clone(),
-            &[Vec3::new(0.9, 0.1, 0.0), Vec3::new(0.7, 0.0, 0.1)],
+            &Palette::new(&[Vec3::new(0.9, 0.1, 0.0), Vec3::new(0.7, 0.0, 0.1)]),
         );
         assert_eq!(slices(&seen), vec![9, 10, 11, 12]);
         assert_eq!(seen.len(), 4 * 25);
-        let seen = seen_by_stroke(&cache, near.clone(), &[Vec3::new(0.0, 0.0, 0.8)]);
+        let seen = seen_by_stroke(&cache, near.clone(), &Palette::new(&[Vec3::new(0.0, 0.0, 0.8)]));
         assert_eq!(slices(&seen), vec![13]);
-        let green = seen_by_stroke(&cache, near.clone(), &[Vec3::Y]);
+        let green = seen_by_stroke(&cache, near.clone(), &Palette::new(&[Vec3::Y]));
         assert_eq!(green, near, "nothing looks like the stroke: all kept");
-        assert_eq!(seen_by_stroke(&cache, near.clone(), &[]), near);
+        assert_eq!(seen_by_stroke(&cache, near.clone(), &Palette::default()), near);
     }
 }

@@ -135,6 +135,9 @@ pub struct CutInput<'a> {
     /// Only voxels farther than this from the stroke's centres feed the
     /// background model.
     pub unlike: f32,
+    /// Domain voxels (domain order) that never feed the background model,
+    /// however unlike the stroke their features are; empty: none.
+    pub not_background: &'a [bool],
 }
 
 /// The refined region (a subset of the domain), or `None` when there is no
@@ -146,7 +149,10 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     let rows = rows_of(cache, input.domain);
     let d_obj = input.object_distance;
     debug_assert_eq!(d_obj.len(), n);
-    let unlike: Vec<bool> = d_obj.iter().map(|&d| d > input.unlike).collect();
+    let kept_out = |i: usize| input.not_background.get(i).copied().unwrap_or(false);
+    let unlike: Vec<bool> = (d_obj.iter().enumerate())
+        .map(|(i, &d)| d > input.unlike && !kept_out(i))
+        .collect();
     let mut node_of_row = vec![u32::MAX; cache.len()];
     for (i, &r) in rows.iter().enumerate() {
         node_of_row[r] = i as u32;
@@ -511,6 +517,7 @@ mod tests {
                 background_hard: &[],
                 known_background: None,
                 unlike: 0.0,
+                not_background: &[],
             };
             let got = unlike_colour_share(&input, 0);
             assert!((got - want).abs() < 1e-6, "stroke on slice {slice}: {got}, want {want}");
@@ -544,6 +551,7 @@ mod tests {
             background_hard: &[],
             known_background: None,
             unlike: 0.0,
+            not_background: &[],
         };
         // Colour in the boundary term only, first; one round (a second
         // would re-fit the background to the band too).

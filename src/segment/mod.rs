@@ -12,6 +12,7 @@ pub mod grow;
 pub mod kmeans;
 pub mod maxflow;
 pub mod nnfm;
+pub mod palette;
 pub mod stable;
 pub mod stroke;
 
@@ -28,6 +29,7 @@ use crate::field::{Bitmap, FeatureCache, Field};
 use crate::render::Scene;
 use crate::util::ms_since;
 use crate::{ensure, Result};
+use palette::Palette;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
@@ -425,13 +427,17 @@ fn segment_anchored(
         t.threshold = s.threshold;
         let t0 = Instant::now();
         let mut hard = anchor::near_anchors(&region, anchors, anchor::radius(cache));
+        let palette = Palette::new(stroke.colours);
         if field.is_some() {
-            hard = anchor::seen_by_stroke(cache, hard, stroke.colours);
+            hard = anchor::seen_by_stroke(cache, hard, &palette);
         }
-        let region = cut_region(
-            cache, field, &mut dist, &s, &region, &hard, anchors, negatives, p, &mut t.cut,
-        )
-        .unwrap_or(s.region);
+        let seeds = Seeds {
+            region: &region,
+            hard: &hard,
+            anchors,
+            palette: &palette,
+        };
+        let region = cut_region(cache, field, &mut dist, &s, &seeds, negatives, p, &mut t.cut).unwrap_or(s.region);
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
         return Ok((region, dist));
@@ -446,39 +452,60 @@ fn segment_anchored(
     Ok((region, dist))
 }
 
+/// What a stroke's cut starts from: the NNFM seeds joined to the stroke,
+/// the seeds under it (tied to the object), the voxels under it and the
+/// colours its pixels show.
+struct Seeds<'a> {
+    region: &'a Bitmap,
+    hard: &'a [u32],
+    anchors: &'a [u32],
+    palette: &'a Palette,
+}
+
 /// The stable region refined by the graph cut over the voxels its flood
 /// reached, kept where joined to the stroke; `None` when the cut is off,
-/// has nothing to tie to the stroke (`hard`: seeds under it) or leaves
-/// nothing there.
+/// has nothing to tie to the stroke (`seeds.hard`) or leaves nothing there.
 ///
 /// When the flood took in nearly everything it reached, the features saw
 /// no boundary and the cut would have no background to fit; if most of
 /// what it took does not look like the stroke either (colours unlike the
 /// voxels under it), the features are not trusted past θ: the cut starts
-/// from the NNFM `seeds`, everything past θ outside them its background.
+/// from the NNFM seeds, everything past θ outside them its background.
 /// On the realistic benchmark's fields trained as `isrf train` trains
 /// them, the books' stroke flooded the whole shelf (3D IoU 0.095 → 0.949)
 /// and the jar's the excavator (0.281 → 0.945); the shelf's own flood,
 /// right to take everything, has colours like its stroke (42 % unlike
 /// against the books' 65 %), as has the fern's (2 %).
+///
+/// When no threshold was stable (the region is the seeds: the region crept
+/// on steadily as the threshold rose), the stroke is on something whose
+/// features drift across it, a wall, a floor, a table top, and the parts
+/// of it past the background threshold would feed the background model
+/// and hold the cut at the seeds (the realistic benchmark's wall: 3,960 of
+/// its 8,952 voxels). So voxels showing a colour the stroke's pixels show
+/// ([`LIKE_STROKE`]) do not feed the background model then.
 #[allow(clippy::too_many_arguments)]
 fn cut_region(
     cache: &FeatureCache,
     field: Option<&Field>,
     dist: &mut nnfm::StrokeDistances,
     s: &stable::StableRegion,
-    seeds: &Bitmap,
-    hard: &[u32],
-    anchors: &[u32],
+    seeds: &Seeds,
     negatives: &Negatives,
     p: &SegmentParams,
     t: &mut cut::CutTimings,
 ) -> Option<Bitmap> {
-    if p.cut.rounds == 0 || hard.is_empty() {
+    if p.cut.rounds == 0 || seeds.hard.is_empty() {
         return None;
     }
     let colours = voxel_colours(field, cache, &s.reached);
     let object_distance = dist.of_rows(cache, &cut::rows_of(cache, &s.reached));
+    let not_background: Vec<bool> = if s.threshold <= p.theta && !colours.is_empty() && !seeds.palette.is_empty() {
+        let table = seeds.palette.table(LIKE_STROKE);
+        colours.iter().map(|&c| table.shows(c)).collect()
+    } else {
+        vec![]
+    };
     let unlike = if p.cut.background_min > 0.0 {
         p.cut.background_min.max(s.threshold)
     } else {
@@ -490,21 +517,26 @@ fn cut_region(
         colours: &colours,
         object_distance: &object_distance,
         region: &s.region,
-        hard,
+        hard: seeds.hard,
         background_hard: &negatives.touched,
         known_background: negatives.centres.as_ref(),
         unlike,
+        not_background: &not_background,
     };
     let background = (s.reached.iter().zip(&object_distance))
         .filter(|&(&v, &d)| d > unlike && !s.region.get(v as usize))
         .count();
     if background * NO_BACKGROUND < s.reached.len() && cut::unlike_colour_share(&input, p.kmeans_seed) > MOSTLY_UNLIKE {
-        input.region = seeds;
+        input.region = seeds.region;
         input.unlike = p.theta;
     }
     let cut = cut::refine(&input, &p.cut, p.kmeans_seed, t)?;
-    anchor::joined_seeds(&cut, anchors, anchor::radius(cache))
+    anchor::joined_seeds(&cut, seeds.anchors, anchor::radius(cache))
 }
+
+/// A colour within this squared RGB distance of one the stroke's pixels
+/// show looks like the stroke ([`cut_region`]).
+const LIKE_STROKE: f32 = 0.02;
 
 /// A flood that leaves fewer than 1/this of the voxels it reached for the
 /// cut's background has found no boundary.
@@ -731,7 +763,7 @@ impl MaskBuilder {
         let colours = voxel_colours(field, cache, &domain);
         let mut hard = anchor::near_anchors(&self.mask, &self.positive_anchors, anchor::radius(cache));
         if field.is_some() {
-            hard = anchor::seen_by_stroke(cache, hard, &self.positive_colours);
+            hard = anchor::seen_by_stroke(cache, hard, &Palette::new(&self.positive_colours));
         }
         let rows = cut::rows_of(cache, &domain);
         let object_distance = match &mut self.positive {
@@ -756,6 +788,7 @@ impl MaskBuilder {
             background_hard: &self.negatives.touched,
             known_background: self.negatives.centres.as_ref(),
             unlike: p.cut.background_min,
+            not_background: &[],
         };
         let Some(kept) = cut::refine(&input, &p.cut, p.kmeans_seed, t) else {
             return Ok(false);
