@@ -379,7 +379,7 @@ impl Negatives {
 #[derive(Default)]
 struct StrokeLook<'a> {
     anchors: &'a [u32],
-    colours: &'a [glam::Vec3],
+    palette: Palette,
 }
 
 /// [`region_from_features`], also returning the stroke's NNFM distances
@@ -427,15 +427,14 @@ fn segment_anchored(
         t.threshold = s.threshold;
         let t0 = Instant::now();
         let mut hard = anchor::near_anchors(&region, anchors, anchor::radius(cache));
-        let palette = Palette::new(stroke.colours);
         if field.is_some() {
-            hard = anchor::seen_by_stroke(cache, hard, &palette);
+            hard = anchor::seen_by_stroke(cache, hard, &stroke.palette);
         }
         let seeds = Seeds {
             region: &region,
             hard: &hard,
             anchors,
-            palette: &palette,
+            palette: &stroke.palette,
         };
         let region = cut_region(cache, field, &mut dist, &s, &seeds, negatives, p, &mut t.cut).unwrap_or(s.region);
         t.cut_ms = ms_since(t0);
@@ -600,7 +599,7 @@ pub struct MaskBuilder {
     /// Voxels under the positive strokes so far, ascending.
     positive_anchors: Vec<u32>,
     /// The colours the positive strokes' pixels showed.
-    positive_colours: Vec<glam::Vec3>,
+    positive_palette: Palette,
     /// The positive strokes' centres so far, concatenated, with the
     /// distances to them as far as measured: a negative stroke's cut needs
     /// them over the whole mask.
@@ -617,7 +616,7 @@ impl MaskBuilder {
         MaskBuilder {
             mask,
             positive_anchors: vec![],
-            positive_colours: vec![],
+            positive_palette: Palette::default(),
             positive: None,
             negatives: Negatives::default(),
             coarse: None,
@@ -716,7 +715,7 @@ impl MaskBuilder {
                 self.positive_anchors.extend_from_slice(&s.anchors);
                 self.positive_anchors.sort_unstable();
                 self.positive_anchors.dedup();
-                self.positive_colours.extend_from_slice(&s.colours);
+                self.positive_palette.extend(&s.palette);
                 match &mut self.positive {
                     Some(d) => d.merge(cache, s.dist),
                     none => *none = Some(s.dist),
@@ -787,7 +786,7 @@ impl MaskBuilder {
         let colours = voxel_colours(field, cache, &domain);
         let mut hard = anchor::near_anchors(&self.mask, &self.positive_anchors, anchor::radius(cache));
         if field.is_some() {
-            hard = anchor::seen_by_stroke(cache, hard, &Palette::new(&self.positive_colours));
+            hard = anchor::seen_by_stroke(cache, hard, &self.positive_palette);
         }
         let rows = cut::rows_of(cache, &domain);
         let object_distance = match &mut self.positive {
@@ -974,7 +973,7 @@ struct StrokeRegion {
     /// The voxels under the stroke (its surface), ascending.
     anchors: Vec<u32>,
     /// The colours its pixels show.
-    colours: Vec<glam::Vec3>,
+    palette: Palette,
 }
 
 /// [`region_from_stroke`] for an object with earlier `negatives`, also
@@ -1006,7 +1005,7 @@ fn segment_stroke(
     let field = anchor::layer_of(scene, owner).map(|l| &*l.field);
     let look = StrokeLook {
         anchors: &anchors,
-        colours: &samples.colours,
+        palette: Palette::new(&samples.colours),
     };
     let (region, dist) = segment_anchored(
         cache,
@@ -1018,13 +1017,13 @@ fn segment_stroke(
         p,
         &mut t,
     )?;
-    let colours = samples.colours;
+    let palette = look.palette;
     Ok((
         StrokeRegion {
             region,
             dist,
             anchors,
-            colours,
+            palette,
         },
         t,
     ))

@@ -31,6 +31,14 @@ impl Palette {
         }
     }
 
+    /// Adds `other`'s colours (an object's palette over its strokes).
+    pub fn extend(&mut self, other: &Palette) {
+        self.colours.extend_from_slice(&other.colours);
+        self.colours
+            .sort_unstable_by(|a, b| a.to_array().partial_cmp(&b.to_array()).unwrap());
+        self.colours.dedup();
+    }
+
     pub fn is_empty(&self) -> bool {
         self.colours.is_empty()
     }
@@ -154,6 +162,11 @@ mod tests {
         let red = Vec3::new(0.9, 0.1, 0.1);
         let palette = Palette::new(&[red, red + Vec3::splat(0.0005), Vec3::new(0.1, 0.1, 0.9)]);
         assert_eq!(palette.colours.len(), 2);
+        // An object's palette over two strokes keeps each colour once.
+        let mut object = palette.clone();
+        object.extend(&palette);
+        object.extend(&Palette::new(&[Vec3::ZERO]));
+        assert_eq!(object.colours.len(), 3);
         assert!(palette.shows(Vec3::new(0.8, 0.15, 0.1), 0.02));
         assert!(!palette.shows(Vec3::new(0.5, 0.5, 0.5), 0.02));
         assert!(Palette::new(&[]).is_empty());
