@@ -35,6 +35,14 @@ impl Bitmap {
         b.clear_tail();
         Ok(b)
     }
+    /// The bitmap whose set voxels are `ones` (indices below the voxel count).
+    pub fn from_ones(res: [usize; 3], ones: &[u32]) -> Self {
+        let mut b = Bitmap::new(res);
+        for &v in ones {
+            b.set(v as usize, true);
+        }
+        b
+    }
     pub fn from_fn(res: [usize; 3], f: impl Fn(usize) -> bool + Sync) -> Self {
         use rayon::prelude::*;
         let n = res[0] * res[1] * res[2];

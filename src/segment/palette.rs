@@ -39,6 +39,10 @@ impl Palette {
         self.colours.dedup();
     }
 
+    pub fn len(&self) -> usize {
+        self.colours.len()
+    }
+
     pub fn is_empty(&self) -> bool {
         self.colours.is_empty()
     }
