@@ -582,7 +582,7 @@ fn scene_share(table: &PaletteTable, scene: &[glam::Vec3]) -> f32 {
 const SCENE_SEED: u64 = 0x5CE7E;
 
 /// Colours of the scene sampled to judge how common the stroke's are.
-const SCENE_SAMPLE: usize = 65_536;
+const SCENE_SAMPLE: usize = 16_384;
 
 /// Past this share of the scene looking like the stroke, colour tells
 /// nothing apart ([`stroke_coloured`]).
@@ -1090,6 +1090,6 @@ mod tests {
         assert!(stroke_coloured(&flood, &Palette::default(), &scene).is_empty());
         let many: Vec<Vec3> = (0..1_000_000).map(|i| if i % 4 == 1 { red } else { grey }).collect();
         let share = scene_share(&palette.table(LIKE_STROKE), &many);
-        assert!((share - 0.25).abs() < 0.01, "sampled share {share}");
+        assert!((share - 0.25).abs() < 0.02, "sampled share {share}");
     }
 }
