@@ -1072,8 +1072,9 @@ mod tests {
 
     /// Known answers: a stroke showing red marks the red voxels of its
     /// flood while red is a third of the scene, and none once red is most
-    /// of it (colour then tells nothing apart); the scene's share is
-    /// judged on a strided sample that still sees a rare colour.
+    /// of it (colour then tells nothing apart); on a large scene the share
+    /// is judged on a random sample, which a periodic layout (every 4th
+    /// voxel red) does not fool as a stride of 16 would.
     #[test]
     fn stroke_colours_count_only_where_the_scene_has_others() {
         let red = Vec3::new(0.9, 0.1, 0.1);

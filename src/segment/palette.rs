@@ -39,10 +39,6 @@ impl Palette {
         self.colours.dedup();
     }
 
-    pub fn len(&self) -> usize {
-        self.colours.len()
-    }
-
     pub fn is_empty(&self) -> bool {
         self.colours.is_empty()
     }
