@@ -841,10 +841,11 @@ fn a_stroke_beside_a_touching_neighbour_does_not_tie_it_to_the_object() {
 }
 
 /// An off-white wall (|x| < 0.9, |y| < 0.5, |z| < 0.15) whose features turn
-/// steadily along x, from 0° at its left end to 80° at its right, standing
-/// on a brown floor whose features are 60° out of their plane (squared
-/// distance about 1 from the wall's left end); the wall's solid voxels and
-/// the floor's.
+/// steadily along x, from 0° at its left end to `drift_degrees` at its
+/// right, above a brown floor (y from −0.95 up to `floor_top`: −0.5 touches
+/// the wall, lower leaves a gap) whose features are 60° out of their plane
+/// (squared distance about 1 from the wall's left end); the field, the
+/// wall's solid voxels and the floor's.
 fn drifting_wall_on_a_floor(floor_top: f32, drift_degrees: f32) -> (Arc<Field>, Bitmap, Bitmap) {
     let wall = |p: Vec3| p.x.abs() < 0.9 && p.y.abs() < 0.5 && p.z.abs() < 0.15;
     let floor = move |p: Vec3| (-0.95..=floor_top).contains(&p.y) && p.x.abs() < 0.9 && p.z.abs() < 0.9;

@@ -483,7 +483,9 @@ struct Seeds<'a> {
 /// and hold the cut at the seeds (the realistic benchmark's wall: 3,960 of
 /// its 8,952 voxels). So voxels showing a colour the stroke's pixels show
 /// ([`LIKE_STROKE`]) do not feed the background model then, unless most of
-/// the scene does ([`stroke_coloured`]).
+/// the scene does ([`stroke_coloured`]); if that leaves the cut no
+/// background at all, the whole flood looks like the stroke and is the
+/// region (joined to the stroke), not the seeds.
 #[allow(clippy::too_many_arguments)]
 fn cut_region(
     cache: &FeatureCache,
