@@ -13,6 +13,7 @@ pub mod kmeans;
 pub mod maxflow;
 pub mod nnfm;
 pub mod palette;
+pub mod plane;
 pub mod stable;
 pub mod stroke;
 
@@ -387,7 +388,9 @@ struct StrokeLook<'a> {
 /// with `stroke.anchors` (voxels under the stroke), only the seeds joined to them
 /// are kept, and the stable rule's region is refined by a graph cut (with
 /// the colours of `field`, the field that owns `cache`, when given) that
-/// respects the object's earlier `negatives`.
+/// respects the object's earlier `negatives`; a region on a drifting
+/// surface that is flat then goes on along it in its colours
+/// ([`along_surface`]).
 #[allow(clippy::too_many_arguments)]
 fn segment_anchored(
     cache: &FeatureCache,
@@ -430,13 +433,24 @@ fn segment_anchored(
         if field.is_some() {
             hard = anchor::seen_by_stroke(cache, hard, &stroke.palette);
         }
+        // No stable threshold: a surface whose features drift (see
+        // `cut_region`); its colours, where they tell things apart.
+        let surface = match field {
+            Some(_) if s.threshold <= p.theta => surface_colours(&stroke.palette, &cache.colours),
+            _ => None,
+        };
         let seeds = Seeds {
             region: &region,
             hard: &hard,
             anchors,
             palette: &stroke.palette,
+            surface: surface.as_ref(),
         };
         let region = cut_region(cache, field, &mut dist, &s, &seeds, negatives, p, &mut t.cut).unwrap_or(s.region);
+        let region = match &surface {
+            Some(colours) => along_surface(cache, floor, region, colours),
+            None => region,
+        };
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
         return Ok((region, dist));
@@ -459,6 +473,9 @@ struct Seeds<'a> {
     hard: &'a [u32],
     anchors: &'a [u32],
     palette: &'a Palette,
+    /// On a drifting surface, the colours that look like the stroke
+    /// ([`surface_colours`]).
+    surface: Option<&'a PaletteTable<'a>>,
 }
 
 /// The stable region refined by the graph cut over the voxels its flood
@@ -483,7 +500,7 @@ struct Seeds<'a> {
 /// and hold the cut at the seeds (the realistic benchmark's wall: 3,960 of
 /// its 8,952 voxels). So voxels showing a colour the stroke's pixels show
 /// ([`LIKE_STROKE`]) do not feed the background model then, unless most of
-/// the scene does ([`stroke_coloured`]); if that leaves the cut no
+/// the scene does ([`surface_colours`]); if that leaves the cut no
 /// background at all, the whole flood looks like the stroke and is the
 /// region (joined to the stroke), not the seeds.
 #[allow(clippy::too_many_arguments)]
@@ -502,10 +519,9 @@ fn cut_region(
     }
     let colours = voxel_colours(field, cache, &s.reached);
     let object_distance = dist.of_rows(cache, &cut::rows_of(cache, &s.reached));
-    let not_background = if s.threshold <= p.theta {
-        stroke_coloured(&colours, seeds.palette, &cache.colours)
-    } else {
-        vec![]
+    let not_background: Vec<bool> = match seeds.surface {
+        Some(table) => colours.iter().map(|&c| table.shows(c)).collect(),
+        None => vec![],
     };
     let unlike = if p.cut.background_min > 0.0 {
         p.cut.background_min.max(s.threshold)
@@ -545,9 +561,9 @@ fn cut_region(
 /// show looks like the stroke ([`cut_region`]).
 const LIKE_STROKE: f32 = 0.02;
 
-/// Which of `colours` look like the stroke ([`LIKE_STROKE`]); none when
-/// the stroke's colours are the colours of most of the scene (`scene`,
-/// every solid voxel's colour): colour then tells nothing apart. On the
+/// The colours that look like the stroke's (within [`LIKE_STROKE`] of one
+/// its pixels show); none when they are the colours of most of the scene
+/// (`scene`, every solid voxel's colour): colour then tells nothing apart. On the
 /// fern the stroke's pixels show the blur of fronds and of the wall, the
 /// floor and the dark behind them, and their colours are those of 88–99 %
 /// of the scene's voxels (kept out of the background model, the walk's
@@ -556,15 +572,23 @@ const LIKE_STROKE: f32 = 0.02;
 /// mostly 2–50 %. (The share of the stroke's own flood does not tell the
 /// two apart: the fern's floods and the splat benchmark's floor and wall
 /// both look wholly like their strokes.)
-fn stroke_coloured(colours: &[glam::Vec3], palette: &Palette, scene: &[glam::Vec3]) -> Vec<bool> {
-    if colours.is_empty() || palette.is_empty() {
-        return vec![];
+fn surface_colours<'a>(palette: &'a Palette, scene: &[glam::Vec3]) -> Option<PaletteTable<'a>> {
+    if palette.is_empty() {
+        return None;
     }
     let table = palette.table(LIKE_STROKE);
-    if scene_share(&table, scene) > MOSTLY_LIKE {
-        return vec![];
+    (scene_share(&table, scene) <= MOSTLY_LIKE).then_some(table)
+}
+
+/// `region`, on a drifting surface that is flat, continued along its slab
+/// through solid voxels (σ above `floor`) of the surface's `colours`
+/// ([`plane`]).
+fn along_surface(cache: &FeatureCache, floor: f32, region: Bitmap, colours: &PaletteTable) -> Bitmap {
+    let voxels: Vec<u32> = region.ones().map(|v| v as u32).collect();
+    match plane::flat_slab(&cache.geom, &voxels) {
+        Some(slab) => plane::grow_in_slab(cache, &cache.solid(floor), &region, &slab, |c| colours.shows(c)),
+        None => region,
     }
-    colours.iter().map(|&c| table.shows(c)).collect()
 }
 
 /// The share of `scene` that `table` shows, judged on at most
@@ -587,7 +611,7 @@ const SCENE_SEED: u64 = 0x5CE7E;
 const SCENE_SAMPLE: usize = 16_384;
 
 /// Past this share of the scene looking like the stroke, colour tells
-/// nothing apart ([`stroke_coloured`]).
+/// nothing apart ([`surface_colours`]).
 const MOSTLY_LIKE: f32 = 0.8;
 
 /// A flood that leaves fewer than 1/this of the voxels it reached for the
@@ -1084,13 +1108,14 @@ mod tests {
         let palette = Palette::new(&[red, Vec3::new(0.85, 0.15, 0.1)]);
         let flood = [red, grey, Vec3::new(0.95, 0.05, 0.1), Vec3::new(0.1, 0.1, 0.9)];
         let scene: Vec<Vec3> = (0..300).map(|i| if i % 3 == 0 { red } else { grey }).collect();
+        let shown = |t: PaletteTable| flood.iter().map(|&c| t.shows(c)).collect::<Vec<_>>();
         assert_eq!(
-            stroke_coloured(&flood, &palette, &scene),
-            vec![true, false, true, false]
+            surface_colours(&palette, &scene).map(shown),
+            Some(vec![true, false, true, false])
         );
         let reddish: Vec<Vec3> = (0..300).map(|i| if i % 10 == 0 { grey } else { red }).collect();
-        assert!(stroke_coloured(&flood, &palette, &reddish).is_empty());
-        assert!(stroke_coloured(&flood, &Palette::default(), &scene).is_empty());
+        assert!(surface_colours(&palette, &reddish).is_none());
+        assert!(surface_colours(&Palette::default(), &scene).is_none());
         let many: Vec<Vec3> = (0..1_000_000).map(|i| if i % 4 == 1 { red } else { grey }).collect();
         let share = scene_share(&palette.table(LIKE_STROKE), &many);
         assert!((share - 0.25).abs() < 0.02, "sampled share {share}");

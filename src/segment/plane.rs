@@ -1,0 +1,195 @@
+//! Growth along a flat surface: a floor, a wall, a table top.
+//!
+//! A teacher sees the near and the far end of a large surface differently,
+//! so its features drift across it, and a stroke's flood stops part way
+//! (the splat benchmark's floor: a third of it past the flood's limit).
+//! Such surfaces are flat, and where colour tells things apart (see
+//! `surface_colours` in the parent module) their colour does not drift:
+//! when the region a stroke found lies in a thin slab, it continues along
+//! that slab through solid voxels showing a colour the stroke's pixels
+//! show. What stands on the surface leaves the slab within a few voxels
+//! and what meets it at an angle (a wall on a floor) crosses it in a
+//! strip, so neither is taken, and a region that is not flat (a pot, a
+//! jar) is left as it is.
+
+use crate::field::{Bitmap, FeatureCache, GridGeom};
+use glam::{DVec3, Vec3};
+use nalgebra::{Matrix3, SymmetricEigen};
+
+/// A slab around a plane: the points within `half_width` of it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Slab {
+    pub centre: Vec3,
+    /// Unit normal.
+    pub normal: Vec3,
+    pub half_width: f32,
+}
+
+impl Slab {
+    pub fn holds(&self, p: Vec3) -> bool {
+        (p - self.centre).dot(self.normal).abs() <= self.half_width
+    }
+}
+
+/// The least half-width of a slab, in voxels (the smallest grid spacing).
+const MIN_HALF_WIDTH: f32 = 2.0;
+/// A slab's half-width in standard deviations of its points across it: a
+/// trained or imported surface is a few voxels thick, a splat floor
+/// sampled on a thick slab ten.
+const HALF_WIDTH_SIGMAS: f32 = 2.5;
+/// The least share of a region inside its slab for it to be flat.
+const FLAT_SHARE: f32 = 0.85;
+/// The most a flat region's thickness (standard deviation across its
+/// plane) may be against its spread along it (standard deviation along
+/// its narrower in-plane axis): a patch of floor or wall 0.07–0.2, a
+/// box, a mug or a pot 0.4 and more.
+const FLAT_RATIO: f32 = 0.25;
+/// The least spread along the plane, in voxels: a smaller patch is no
+/// surface to follow, and its plane would be guessed from a few voxels.
+const MIN_SPREAD: f32 = 6.0;
+
+/// The slab that holds most of `voxels` (grid indices of `geom`), if they
+/// are flat: at least [`FLAT_SHARE`] of them in it, thin against their
+/// spread along it ([`FLAT_RATIO`], [`MIN_SPREAD`]). The plane is the
+/// least-variance plane of the voxels, fitted again to those within the
+/// first fit's slab, so that a strip of a neighbouring surface the region
+/// took (the foot of a wall) does not tilt or thicken it.
+pub fn flat_slab(geom: &GridGeom, voxels: &[u32]) -> Option<Slab> {
+    let h = geom.spacing().min_element();
+    let points: Vec<Vec3> = voxels.iter().map(|&v| geom.point_of(v as usize)).collect();
+    let slab = |f: &Fit| Slab {
+        centre: f.centre,
+        normal: f.normal,
+        half_width: (HALF_WIDTH_SIGMAS * f.thickness).max(MIN_HALF_WIDTH * h),
+    };
+    let first = fit(points.iter().copied())?;
+    let second = fit(points.iter().copied().filter(|&p| slab(&first).holds(p)))?;
+    let inside = points.iter().filter(|&&p| slab(&second).holds(p)).count();
+    let flat = inside as f32 >= FLAT_SHARE * points.len() as f32
+        && second.thickness <= FLAT_RATIO * second.spread
+        && second.spread >= MIN_SPREAD * h;
+    flat.then(|| slab(&second))
+}
+
+/// A least-squares plane: its centre, unit normal, and the standard
+/// deviations of the points across it and along its narrower in-plane axis.
+struct Fit {
+    centre: Vec3,
+    normal: Vec3,
+    thickness: f32,
+    spread: f32,
+}
+
+fn fit(points: impl Iterator<Item = Vec3> + Clone) -> Option<Fit> {
+    let n = points.clone().count();
+    if n < 3 {
+        return None;
+    }
+    let mean = points.clone().fold(DVec3::ZERO, |a, p| a + p.as_dvec3()) / n as f64;
+    let mut cov = Matrix3::<f64>::zeros();
+    for p in points {
+        let d = p.as_dvec3() - mean;
+        let d = nalgebra::Vector3::new(d.x, d.y, d.z);
+        cov += d * d.transpose();
+    }
+    cov /= n as f64;
+    let eig = SymmetricEigen::new(cov);
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+    let normal = eig.eigenvectors.column(order[0]);
+    let normal = DVec3::new(normal[0], normal[1], normal[2]).normalize_or_zero();
+    (normal != DVec3::ZERO).then(|| Fit {
+        centre: mean.as_vec3(),
+        normal: normal.as_vec3(),
+        thickness: eig.eigenvalues[order[0]].max(0.0).sqrt() as f32,
+        spread: eig.eigenvalues[order[1]].max(0.0).sqrt() as f32,
+    })
+}
+
+/// `region` grown through the 6-neighbours of its voxels that are solid
+/// (`solid`), inside `slab` and of a colour `shows` accepts (colours are
+/// the cache's per-voxel diffuse colours), until none is left.
+pub fn grow_in_slab(
+    cache: &FeatureCache,
+    solid: &Bitmap,
+    region: &Bitmap,
+    slab: &Slab,
+    shows: impl Fn(Vec3) -> bool,
+) -> Bitmap {
+    let geom = &cache.geom;
+    let res = geom.res;
+    let mut out = region.clone();
+    let mut stack: Vec<usize> = region.ones().collect();
+    let strides = [1, res[0], res[0] * res[1]];
+    while let Some(v) = stack.pop() {
+        let c = geom.coords(v);
+        for axis in 0..3 {
+            let below = (c[axis] > 0).then(|| v - strides[axis]);
+            let above = (c[axis] + 1 < res[axis]).then(|| v + strides[axis]);
+            for n in below.into_iter().chain(above) {
+                if out.get(n) || !solid.get(n) || !slab.holds(geom.point_of(n)) {
+                    continue;
+                }
+                let Some(r) = cache.index.slot(n) else { continue };
+                if shows(cache.colours[r]) {
+                    out.set(n, true);
+                    stack.push(n);
+                }
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::Aabb;
+
+    fn grid(n: usize) -> GridGeom {
+        GridGeom::new(Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0)), [n; 3])
+    }
+
+    fn voxels(g: &GridGeom, keep: impl Fn(Vec3) -> bool) -> Vec<u32> {
+        (0..g.len())
+            .filter(|&v| keep(g.point_of(v)))
+            .map(|v| v as u32)
+            .collect()
+    }
+
+    /// Known answers: a tilted slab three voxels thick is flat, its normal
+    /// found to within a degree; with the foot of a wall standing on it (a
+    /// tenth of the voxels) the plane is the same; a ball, a cube and a
+    /// small patch are not flat.
+    #[test]
+    fn flat_regions_give_their_slab_and_others_none() {
+        let g = grid(64);
+        let h = g.spacing().x;
+        let n = Vec3::new(0.2, 1.0, 0.1).normalize();
+        let slab = |p: Vec3| (p.dot(n) + 0.3).abs() <= 1.5 * h && p.x.abs() < 0.8 && p.z.abs() < 0.8;
+        let floor = voxels(&g, slab);
+        let s = flat_slab(&g, &floor).expect("a slab is flat");
+        assert!(s.normal.dot(n).abs() > 1f32.to_radians().cos(), "normal {:?}", s.normal);
+        assert!(floor.iter().all(|&v| s.holds(g.point_of(v as usize))));
+        assert!(
+            s.half_width >= MIN_HALF_WIDTH * h && s.half_width <= 3.0 * h,
+            "half-width {}",
+            s.half_width / h
+        );
+        // The foot of a wall: a strip standing up from the slab.
+        let foot = |p: Vec3| {
+            slab(p) || (p.z.abs() < 2.0 * h && p.x.abs() < 0.8 && p.dot(n) + 0.3 > 0.0 && p.dot(n) + 0.3 < 0.15)
+        };
+        let with_foot = voxels(&g, foot);
+        assert!(with_foot.len() > floor.len() + floor.len() / 20);
+        let t = flat_slab(&g, &with_foot).expect("still flat");
+        assert!(t.normal.dot(n).abs() > 2f32.to_radians().cos(), "normal {:?}", t.normal);
+        let ball = voxels(&g, |p| p.length() < 0.5);
+        assert_eq!(flat_slab(&g, &ball), None);
+        let cube = voxels(&g, |p| p.abs().max_element() < 0.3);
+        assert_eq!(flat_slab(&g, &cube), None);
+        let patch = voxels(&g, |p| p.y.abs() < h && p.x.abs() < 3.0 * h && p.z.abs() < 3.0 * h);
+        assert_eq!(flat_slab(&g, &patch), None);
+        assert_eq!(flat_slab(&g, &[]), None);
+    }
+}
