@@ -434,16 +434,17 @@ fn segment_anchored(
             hard = anchor::seen_by_stroke(cache, hard, &stroke.palette);
         }
         // No stable threshold: a surface whose features drift (see
-        // `cut_region`); its colours, where they tell things apart.
+        // `cut_region`); its colours, where they tell things apart. Both
+        // uses refine the stable region, as the cut does, so `--cut-rounds
+        // 0` leaves the stable region alone.
         let surface = match field {
-            Some(_) if s.threshold <= p.theta => surface_colours(&stroke.palette, &cache.colours),
+            Some(_) if s.threshold <= p.theta && p.cut.rounds > 0 => surface_colours(&stroke.palette, &cache.colours),
             _ => None,
         };
         let seeds = Seeds {
             region: &region,
             hard: &hard,
             anchors,
-            palette: &stroke.palette,
             surface: surface.as_ref(),
         };
         let region = cut_region(cache, field, &mut dist, &s, &seeds, negatives, p, &mut t.cut).unwrap_or(s.region);
@@ -466,15 +467,13 @@ fn segment_anchored(
 }
 
 /// What a stroke's cut starts from: the NNFM seeds joined to the stroke,
-/// the seeds under it (tied to the object), the voxels under it and the
-/// colours its pixels show.
+/// the seeds under it (tied to the object), the voxels under it and, on a
+/// drifting surface, the colours that look like the stroke's pixels
+/// ([`surface_colours`]).
 struct Seeds<'a> {
     region: &'a Bitmap,
     hard: &'a [u32],
     anchors: &'a [u32],
-    palette: &'a Palette,
-    /// On a drifting surface, the colours that look like the stroke
-    /// ([`surface_colours`]).
     surface: Option<&'a PaletteTable<'a>>,
 }
 
