@@ -49,8 +49,8 @@ const FLAT_RATIO: f32 = 0.25;
 const MIN_SPREAD: f32 = 6.0;
 
 /// The slab that holds most of `voxels` (grid indices of `geom`), if they
-/// are flat: at least [`FLAT_SHARE`] of them in it, thin against their
-/// spread along it ([`FLAT_RATIO`], [`MIN_SPREAD`]). The plane is the
+/// are flat: at least `FLAT_SHARE` of them in it, thin against their
+/// spread along it (`FLAT_RATIO`, `MIN_SPREAD`). The plane is the
 /// least-variance plane of the voxels, fitted again to those within the
 /// first fit's slab, so that a strip of a neighbouring surface the region
 /// took (the foot of a wall) does not tilt or thicken it.
