@@ -79,6 +79,11 @@ pub struct SplatRow {
     pub selected: usize,
     pub iou_count: f64,
     pub iou_mass: f64,
+    /// True Gaussians of the object left out.
+    pub missed: usize,
+    /// Gaussians selected that are not the object's, by the name of what
+    /// they are (most first; "unlabelled" for label 0).
+    pub wrong: Vec<(String, usize)>,
 }
 
 /// Runs the selection benchmark (module docs); `log` hears each stage.
@@ -159,7 +164,10 @@ fn score_objects(
         let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, params)?;
         let picked = inside(&file, &field.geom(), &region);
         let truth: Vec<bool> = synth.labels.iter().map(|&l| l == o.label).collect();
+        let missed = (0..truth.len()).filter(|&i| truth[i] && !picked[i]).count();
         rows.push(SplatRow {
+            missed,
+            wrong: wrong_by_label(scene, synth, &picked, o.label),
             scene: scene.name.clone(),
             features: features.to_string(),
             object: o.name.clone(),
@@ -170,6 +178,24 @@ fn score_objects(
         });
     }
     Ok(rows)
+}
+
+/// The Gaussians `picked` that are not `label`'s, counted by the name of
+/// what they are, most first.
+fn wrong_by_label(scene: &demo::DemoScene, synth: &SynthScene, picked: &[bool], label: u8) -> Vec<(String, usize)> {
+    let mut counts = [0usize; 256];
+    for (&l, _) in synth.labels.iter().zip(picked).filter(|(&l, &p)| p && l != label) {
+        counts[l as usize] += 1;
+    }
+    let mut out: Vec<(String, usize)> = (0..256)
+        .filter(|&l| counts[l] > 0)
+        .map(|l| {
+            let name = scene.labels.name_of(l as u8).unwrap_or("unlabelled");
+            (name.to_string(), counts[l])
+        })
+        .collect();
+    out.sort_by_key(|w| std::cmp::Reverse(w.1));
+    out
 }
 
 /// τ·2π·s₂·s₃ of Gaussian `i`.

@@ -106,12 +106,23 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
         "one positive stroke per object (default parameters), features from --orbit {}, demo res {}",
         cfg.orbit, cfg.res
     );
-    println!("| features | scene | object | true Gaussians | selected | IoU (count) | IoU (opacity mass) |");
-    println!("|---|---|---|---:|---:|---:|---:|");
+    println!(
+        "| features | scene | object | true Gaussians | selected | IoU (count) | IoU (opacity mass) | missed | wrong |"
+    );
+    println!("|---|---|---|---:|---:|---:|---:|---:|---|");
     for r in &rows {
+        let wrong: Vec<String> = r.wrong.iter().map(|(name, n)| format!("{name} {n}")).collect();
         println!(
-            "| {} | {} | {} | {} | {} | {:.3} | {:.3} |",
-            r.features, r.scene, r.object, r.true_gaussians, r.selected, r.iou_count, r.iou_mass
+            "| {} | {} | {} | {} | {} | {:.3} | {:.3} | {} | {} |",
+            r.features,
+            r.scene,
+            r.object,
+            r.true_gaussians,
+            r.selected,
+            r.iou_count,
+            r.iou_mass,
+            r.missed,
+            wrong.join(", ")
         );
     }
     for kind in ["oracle", "vit"] {

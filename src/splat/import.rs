@@ -28,6 +28,7 @@
 //! longest axis. Grids are deposited slab by slab in parallel (see
 //! [`slab_phases`]).
 
+use super::boundary::{assign, Placed};
 use super::ply::SplatFile;
 use crate::error::{Error, Result};
 use crate::field::bitmap::{Bitmap, RankIndex};
@@ -479,30 +480,36 @@ fn finish_colour(acc: &[f32], index: &RankIndex, geom: &GridGeom) -> Vec<f16> {
 }
 
 /// Which of the file's Gaussians a bitmap over the field's grid holds: a
-/// Gaussian belongs to the object when at least half of its mass, spread
-/// over the grid as the import spreads it, falls on the bitmap's grid
-/// points. A Gaussian on the boundary goes wholly to one side, so an object
-/// and its complement split the file exactly; one straddling an object's
-/// edge (the table under a mug) goes where most of it is, not where its
-/// centre happens to be. Gaussians the field left out (floaters outside the
-/// bounds, non-finite values) belong to no object.
+/// Gaussian wholly on the bitmap's grid points (its mass spread over the
+/// grid as the import spreads it) belongs to the object, one wholly off it
+/// does not, and one straddling the bitmap's edge goes to the side whose
+/// nearby Gaussians it looks like, or where most of its mass is when
+/// colour does not tell ([`super::boundary`]). Each Gaussian goes wholly to
+/// one side, so an object and its complement split the file exactly.
+/// Gaussians the field left out (floaters outside the bounds, non-finite
+/// values) belong to no object.
 pub fn inside(file: &SplatFile, geom: &GridGeom, bits: &Bitmap) -> Vec<bool> {
     let all: Vec<u32> = (0..file.len() as u32).collect();
     let preps = prepare(file, &all, geom);
-    let mut keep = vec![false; file.len()];
-    let picked: Vec<u32> = preps
+    let res = geom.res;
+    let placed: Vec<Placed> = preps
         .par_iter()
         .map_init(Vec::new, |fp, p| {
-            footprint(p, geom.res, fp);
+            footprint(p, res, fp);
             let on: f32 = fp.iter().filter(|(v, _)| bits.get(*v)).map(|(_, w)| w).sum();
-            (!fp.is_empty() && on >= 0.5).then_some(p.index)
+            let g = p.centre.round().clamp(
+                Vec3::ZERO,
+                Vec3::new(res[0] as f32 - 1.0, res[1] as f32 - 1.0, res[2] as f32 - 1.0),
+            );
+            let cell = g.x as usize + res[0] * (g.y as usize + res[1] * g.z as usize);
+            Placed {
+                index: p.index,
+                cell: cell as u32,
+                on,
+            }
         })
-        .flatten()
         .collect();
-    for i in picked {
-        keep[i as usize] = true;
-    }
-    keep
+    assign(file, res, &placed)
 }
 
 #[cfg(test)]

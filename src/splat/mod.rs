@@ -9,6 +9,7 @@
 //! [`import::inside`] for the boundary rule), byte for byte, or their
 //! complement; other fields export one Gaussian per occupied voxel.
 
+pub mod boundary;
 pub mod export;
 pub mod import;
 pub mod ply;
