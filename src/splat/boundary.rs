@@ -74,8 +74,8 @@ pub struct Placed {
 
 /// `keep[i]` for every record of `file`: Gaussians wholly on the bitmap
 /// (`on` ≥ 0.999) are in, wholly off it out, straddlers as the module
-/// docs say. Records
-/// not in `placed` (outside the field, non-finite) are out.
+/// docs say. Records not in `placed` (outside the field, non-finite) are
+/// out.
 pub fn assign(file: &SplatFile, res: [usize; 3], placed: &[Placed]) -> Vec<bool> {
     let mut keep = vec![false; file.len()];
     let colour = |i: u32| dc(file, i as usize);
