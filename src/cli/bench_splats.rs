@@ -28,19 +28,23 @@ pub fn run_import(a: ImportArgs) -> Result<()> {
         res: a.res,
         ..Default::default()
     };
-    let (r, secs) = bench_import(&a.ply, &opts)?;
+    let t = bench_import(&a.ply, &opts)?;
+    let r = &t.report;
     let mb = std::fs::metadata(&a.ply)?.len() as f64 / 1e6;
-    println!("| file | Gaussians | MB | grid | occupied points | threads | import s |");
-    println!("|---|---:|---:|---|---:|---:|---:|");
+    println!("| file | Gaussians | MB | grid | occupied points | threads | import s | select half s (selected) |");
+    println!("|---|---:|---:|---|---:|---:|---:|---:|");
     println!(
-        "| {} | {} | {mb:.1} | {}x{}x{} | {} | {} | {secs:.2} |",
+        "| {} | {} | {mb:.1} | {}x{}x{} | {} | {} | {:.2} | {:.2} ({}) |",
         a.ply.display(),
         r.gaussians,
         r.res[0],
         r.res[1],
         r.res[2],
         r.occupied,
-        rayon::current_num_threads()
+        rayon::current_num_threads(),
+        t.import_secs,
+        t.select_secs,
+        t.selected
     );
     Ok(())
 }
