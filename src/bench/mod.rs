@@ -21,6 +21,19 @@ pub mod train;
 use std::fmt;
 use std::time::Instant;
 
+/// Per-label counts (`per[label]`) named by `labels` ("unlabelled" for
+/// 0), `skip` and zero counts left out, most first: what a selection of
+/// `skip` took wrongly.
+pub fn wrong_by_name(per: &[usize], labels: &crate::demo::labels::Labels, skip: u8) -> Vec<(String, usize)> {
+    let mut wrong: Vec<(String, usize)> = (0..=u8::MAX)
+        .zip(per)
+        .filter(|&(l, &n)| l != skip && n > 0)
+        .map(|(l, &n)| (labels.name_of(l).unwrap_or("unlabelled").to_string(), n))
+        .collect();
+    wrong.sort_by_key(|w| std::cmp::Reverse(w.1));
+    wrong
+}
+
 /// Milliseconds taken by `f`, and its result.
 pub fn time_ms<T>(f: impl FnOnce() -> T) -> (T, f64) {
     let t0 = Instant::now();

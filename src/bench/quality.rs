@@ -982,12 +982,7 @@ impl StageRow {
         let (per, missed) = resampled.breakdown(region, label);
         let right = per[label as usize];
         let selected: usize = per.iter().sum();
-        let mut wrong: Vec<(String, usize)> = (0..=u8::MAX)
-            .zip(&per)
-            .filter(|&(l, &n)| l != label && n > 0)
-            .map(|(l, &n)| (labels.name_of(l).unwrap_or("unlabelled").to_string(), n))
-            .collect();
-        wrong.sort_by(|a, b| b.1.cmp(&a.1));
+        let wrong = super::wrong_by_name(&per, labels, label);
         StageRow {
             stage,
             selected,

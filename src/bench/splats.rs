@@ -21,7 +21,7 @@ use crate::lift::{lift, lift_maps, orbit_cameras, orbit_views};
 use crate::render::Scene;
 use crate::render::{render, RenderOptions};
 use crate::segment::{region_from_stroke, SegmentParams};
-use crate::splat::import::{import_file, inside, ImportOptions, ImportReport};
+use crate::splat::import::{import_file, import_read, inside, ImportOptions, ImportReport};
 use crate::splat::ply::{standard_bytes, SplatFile};
 use crate::splat::synth::{from_demo, SynthScene};
 use crate::train::teacher::{FeatureMap, FeatureMaps};
@@ -63,9 +63,9 @@ pub struct ImportTimes {
 /// half its grid as an export does.
 pub fn bench_import(path: &Path, opts: &ImportOptions) -> Result<ImportTimes> {
     let t0 = Instant::now();
-    let (field, report) = import_file(path, opts)?;
-    let import_secs = t0.elapsed().as_secs_f64();
     let file = SplatFile::read(path)?;
+    let (field, report) = import_read(path, &file, opts)?;
+    let import_secs = t0.elapsed().as_secs_f64();
     let geom = field.geom();
     let mid = geom.bounds.center().x;
     let half = crate::field::Bitmap::from_fn(geom.res, |i| geom.point_of(i).x > mid);
@@ -209,19 +209,11 @@ fn score_objects(
 /// The Gaussians `picked` that are not `label`'s, counted by the name of
 /// what they are, most first.
 fn wrong_by_label(scene: &demo::DemoScene, synth: &SynthScene, picked: &[bool], label: u8) -> Vec<(String, usize)> {
-    let mut counts = [0usize; 256];
-    for (&l, _) in synth.labels.iter().zip(picked).filter(|(&l, &p)| p && l != label) {
-        counts[l as usize] += 1;
+    let mut per = [0usize; 256];
+    for (&l, _) in synth.labels.iter().zip(picked).filter(|(_, &p)| p) {
+        per[l as usize] += 1;
     }
-    let mut out: Vec<(String, usize)> = (0..256)
-        .filter(|&l| counts[l] > 0)
-        .map(|l| {
-            let name = scene.labels.name_of(l as u8).unwrap_or("unlabelled");
-            (name.to_string(), counts[l])
-        })
-        .collect();
-    out.sort_by_key(|w| std::cmp::Reverse(w.1));
-    out
+    super::wrong_by_name(&per, &scene.labels, label)
 }
 
 /// τ·2π·s₂·s₃ of Gaussian `i`.

@@ -31,6 +31,7 @@
 //! table's Gaussians); that is the segmentation's to fix.
 
 use super::ply::{f32_at, SplatFile};
+use crate::field::GridGeom;
 use glam::Vec3;
 use rayon::prelude::*;
 
@@ -76,7 +77,7 @@ pub struct Placed {
 /// (`on` ≥ 0.999) are in, wholly off it out, straddlers as the module
 /// docs say. Records not in `placed` (outside the field, non-finite) are
 /// out.
-pub fn assign(file: &SplatFile, res: [usize; 3], placed: &[Placed]) -> Vec<bool> {
+pub fn assign(file: &SplatFile, geom: &GridGeom, placed: &[Placed]) -> Vec<bool> {
     let mut keep = vec![false; file.len()];
     let colour = |i: u32| dc(file, i as usize);
     // The references, sorted by cell so that a row of cells is a
@@ -94,7 +95,7 @@ pub fn assign(file: &SplatFile, res: [usize; 3], placed: &[Placed]) -> Vec<bool>
             if !straddles(p.on) {
                 return (p.index, by_mass);
             }
-            let side = colour_side(&refs, res, p, colour(p.index), &colour);
+            let side = colour_side(&refs, geom, p, colour(p.index), &colour);
             (p.index, side.unwrap_or(by_mass))
         })
         .collect();
@@ -148,13 +149,13 @@ impl Side {
 /// times nearer one mean than the other.
 fn colour_side(
     refs: &[(u32, u32, bool)],
-    res: [usize; 3],
+    geom: &GridGeom,
     p: &Placed,
     c: Vec3,
     colour: &impl Fn(u32) -> Vec3,
 ) -> Option<bool> {
     let mut sides = [Side::default(); 2];
-    for (first, last) in neighbour_rows(res, p.cell as usize) {
+    for (first, last) in neighbour_rows(geom, p.cell as usize) {
         let start = refs.partition_point(|w| w.0 < first);
         let run = refs[start..].iter().take_while(|w| w.0 <= last);
         for &(_, index, on) in run.filter(|w| w.1 != p.index) {
@@ -182,15 +183,17 @@ fn colour_side(
 /// The runs of flat indices within [`REACH`] grid points of `cell` along
 /// every axis (clipped to the grid), one contiguous `first..=last` range
 /// per row.
-fn neighbour_rows(res: [usize; 3], cell: usize) -> impl Iterator<Item = (u32, u32)> {
-    let [nx, ny, nz] = res;
-    let (x, y, z) = (cell % nx, cell / nx % ny, cell / (nx * ny));
+fn neighbour_rows(geom: &GridGeom, cell: usize) -> impl Iterator<Item = (u32, u32)> + '_ {
+    let [x, y, z] = geom.coords(cell);
     let span = |v: usize, n: usize| v.saturating_sub(REACH)..=(v + REACH).min(n - 1);
-    let (x0, x1) = (x.saturating_sub(REACH), (x + REACH).min(nx - 1));
-    span(z, nz).flat_map(move |zz| {
-        span(y, ny).map(move |yy| {
-            let row = nx * (yy + ny * zz);
-            ((row + x0) as u32, (row + x1) as u32)
+    let xs = span(x, geom.res[0]);
+    span(z, geom.res[2]).flat_map(move |zz| {
+        let xs = xs.clone();
+        span(y, geom.res[1]).map(move |yy| {
+            (
+                geom.index(*xs.start(), yy, zz) as u32,
+                geom.index(*xs.end(), yy, zz) as u32,
+            )
         })
     })
 }
@@ -200,10 +203,12 @@ mod tests {
     use super::super::ply::{standard_bytes, Gaussian};
     use super::*;
 
-    const RES: [usize; 3] = [10, 10, 10];
+    fn grid(res: [usize; 3]) -> GridGeom {
+        GridGeom::new(crate::field::Aabb::new(Vec3::ZERO, Vec3::ONE), res)
+    }
 
     fn cell(x: usize, y: usize, z: usize) -> u32 {
-        (x + RES[0] * (y + RES[1] * z)) as u32
+        grid([10; 3]).index(x, y, z) as u32
     }
 
     /// A file of Gaussians with these DC colours (positions do not matter
@@ -254,7 +259,8 @@ mod tests {
         add(HALFWAY, cell(5, 5, 5), 0.4);
         add(GREY, cell(0, 5, 5), 0.7);
         add(GREY, cell(9, 1, 9), 1.0);
-        let keep = assign(&file_of(&colours), RES, &placed);
+        let geom = grid([10; 3]);
+        let keep = assign(&file_of(&colours), &geom, &placed);
         assert_eq!(
             &keep[..6],
             &[true, false, true, false, true, false],
@@ -267,19 +273,19 @@ mod tests {
         // Without colours to tell (everything grey) the mass decides alone.
         let grey = file_of(&vec![GREY; placed.len()]);
         let by_mass: Vec<bool> = placed.iter().map(|p| p.on >= 0.5).collect();
-        assert_eq!(assign(&grey, RES, &placed), by_mass);
+        assert_eq!(assign(&grey, &geom, &placed), by_mass);
     }
 
     #[test]
     fn neighbour_rows_stay_on_the_grid() {
-        let res = [9, 8, 2];
-        let corner: Vec<(u32, u32)> = neighbour_rows(res, 0).collect();
+        let geom = grid([9, 8, 2]);
+        let corner: Vec<(u32, u32)> = neighbour_rows(&geom, 0).collect();
         // y 0..=3 on both planes, x 0..=3.
         assert_eq!(corner.len(), 8);
         assert_eq!(corner[0], (0, 3));
         assert_eq!(corner[5], (72 + 9, 72 + 12));
         let far = 8 + 9 * 7 + 72; // (8, 7, 1)
-        let rows: Vec<(u32, u32)> = neighbour_rows(res, far).collect();
+        let rows: Vec<(u32, u32)> = neighbour_rows(&geom, far).collect();
         assert_eq!(rows.len(), 8);
         assert!(rows
             .iter()

@@ -103,8 +103,12 @@ struct Prep {
 
 /// Reads `path` and imports it; the field remembers the file (path, CRC-32).
 pub fn import_file(path: &Path, opts: &ImportOptions) -> Result<(Field, ImportReport)> {
-    let file = SplatFile::read(path)?;
-    let (mut field, report) = build_field(&file, opts).map_err(|e| Error::bad_file(path, e.to_string()))?;
+    import_read(path, &SplatFile::read(path)?, opts)
+}
+
+/// [`import_file`] of `file`, already read from `path`.
+pub fn import_read(path: &Path, file: &SplatFile, opts: &ImportOptions) -> Result<(Field, ImportReport)> {
+    let (mut field, report) = build_field(file, opts).map_err(|e| Error::bad_file(path, e.to_string()))?;
     let abs = std::fs::canonicalize(path).map_err(|e| Error::io(path, e))?;
     field.source = Some(Source {
         path: abs,
@@ -501,15 +505,14 @@ pub fn inside(file: &SplatFile, geom: &GridGeom, bits: &Bitmap) -> Vec<bool> {
                 Vec3::ZERO,
                 Vec3::new(res[0] as f32 - 1.0, res[1] as f32 - 1.0, res[2] as f32 - 1.0),
             );
-            let cell = g.x as usize + res[0] * (g.y as usize + res[1] * g.z as usize);
             Placed {
                 index: p.index,
-                cell: cell as u32,
+                cell: geom.index(g.x as usize, g.y as usize, g.z as usize) as u32,
                 on,
             }
         })
         .collect();
-    assign(file, res, &placed)
+    assign(file, geom, &placed)
 }
 
 #[cfg(test)]
