@@ -17,8 +17,8 @@ use bevy::render::render_resource::binding_types::{
 };
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, BufferInitDescriptor, BufferUsages,
-    CachedComputePipelineId, CachedPipelineState, ComputePipelineDescriptor, PipelineCache, ShaderStages,
-    StorageTextureAccess, TextureFormat, TextureSampleType, TextureUsages, TextureView,
+    CachedComputePipelineId, ComputePipelineDescriptor, PipelineCache, ShaderStages, StorageTextureAccess,
+    TextureFormat, TextureSampleType, TextureUsages, TextureView,
 };
 use bevy::render::renderer::RenderDevice;
 use std::num::NonZero;
@@ -115,7 +115,7 @@ pub(super) fn ready(cache: &PipelineCache, pipeline: &BakePipeline, status: &sup
     if cache.get_compute_pipeline(pipeline.id).is_some() {
         return true;
     }
-    if let CachedPipelineState::Err(e) = cache.get_compute_pipeline_state(pipeline.id) {
+    if let Some(e) = super::compile_failure(cache.get_compute_pipeline_state(pipeline.id)) {
         let msg = format!("the SH bake shader failed to compile: {e}");
         status.update(|s| s.error = Some(msg));
     }

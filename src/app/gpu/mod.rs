@@ -37,6 +37,7 @@ use bevy::render::extract_resource::{ExtractResource, ExtractResourcePlugin};
 use bevy::render::render_resource::binding_types::{
     sampler, storage_buffer_read_only_sized, texture_3d, uniform_buffer_sized,
 };
+use bevy::render::render_resource::CachedPipelineState;
 use bevy::render::render_resource::{
     AddressMode, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor, BufferUsages,
     ColorTargetState, ColorWrites, Extent3d, FilterMode, FragmentState, RenderPipelineDescriptor, Sampler,
@@ -45,7 +46,7 @@ use bevy::render::render_resource::{
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::{Render, RenderApp, RenderStartup, RenderSystems};
-use bevy::shader::{Shader, ShaderDefVal};
+use bevy::shader::{Shader, ShaderCacheError, ShaderDefVal};
 use pack::{GpuLayer, GpuView, MaskRef, Overlay, PackedField};
 use std::num::NonZero;
 use std::sync::{Arc, Mutex};
@@ -316,6 +317,21 @@ const MARCH_DEPTH_FORMAT: TextureFormat = TextureFormat::R32Float;
 
 /// The bound on the layer count a march pipeline is specialised for: 1, 2,
 /// 4 or [`pack::MAX_LAYERS`] (see the shader's `MAX_LAYERS`).
+/// A pipeline's compile failure, to report; `None` while it is queued,
+/// compiling or waiting for a shader asset to load. bevy keeps a pipeline
+/// queued before its shader has loaded in `Err(ShaderNotLoaded)` and
+/// queues it again the next frame; on a busy machine that lasts a frame or
+/// more, and reporting it failed a headless render that would have drawn.
+fn compile_failure(state: &CachedPipelineState) -> Option<&ShaderCacheError> {
+    match state {
+        CachedPipelineState::Err(
+            ShaderCacheError::ShaderNotLoaded(_) | ShaderCacheError::ShaderImportNotYetAvailable,
+        ) => None,
+        CachedPipelineState::Err(e) => Some(e),
+        _ => None,
+    }
+}
+
 fn layer_bound(layers: usize) -> u32 {
     match layers {
         0 | 1 => 1,
@@ -896,6 +912,21 @@ fn update_cache(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_shader_still_loading_is_not_a_compile_failure() {
+        let waiting = [
+            CachedPipelineState::Queued,
+            CachedPipelineState::Err(ShaderCacheError::ShaderNotLoaded(AssetId::default())),
+            CachedPipelineState::Err(ShaderCacheError::ShaderImportNotYetAvailable),
+        ];
+        for state in &waiting {
+            assert!(compile_failure(state).is_none(), "{state:?} is reported as a failure");
+        }
+        let broken = CachedPipelineState::Err(ShaderCacheError::CreateShaderModule("bad WGSL".into()));
+        let e = compile_failure(&broken).expect("a shader module error is a failure");
+        assert!(e.to_string().contains("bad WGSL"), "{e}");
+    }
 
     fn layer(field: u32, mask: u32, flags: u32, highlight: u32) -> GpuLayer {
         GpuLayer {

@@ -21,11 +21,11 @@ use bevy::render::camera::ExtractedCamera;
 use bevy::render::render_resource::binding_types::{sampler, texture_2d};
 use bevy::render::render_resource::{
     BindGroup, BindGroupEntries, BindGroupLayoutDescriptor, BindGroupLayoutEntries, BufferInitDescriptor, BufferUsages,
-    CachedPipelineState, CachedRenderPipelineId, CompareFunction, DepthStencilState, Extent3d, FilterMode,
-    FragmentState, LoadOp, MultisampleState, Operations, PipelineCache, RenderPassColorAttachment,
-    RenderPassDescriptor, RenderPipelineDescriptor, Sampler, SamplerBindingType, SamplerDescriptor, ShaderStages,
-    SpecializedRenderPipeline, SpecializedRenderPipelines, StoreOp, TextureDescriptor, TextureDimension, TextureFormat,
-    TextureSampleType, TextureUsages, TextureView,
+    CachedRenderPipelineId, CompareFunction, DepthStencilState, Extent3d, FilterMode, FragmentState, LoadOp,
+    MultisampleState, Operations, PipelineCache, RenderPassColorAttachment, RenderPassDescriptor,
+    RenderPipelineDescriptor, Sampler, SamplerBindingType, SamplerDescriptor, ShaderStages, SpecializedRenderPipeline,
+    SpecializedRenderPipelines, StoreOp, TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType,
+    TextureUsages, TextureView,
 };
 use bevy::render::renderer::{RenderContext, RenderDevice, ViewQuery};
 use bevy::render::view::{ExtractedView, Msaa, ViewDepthTexture, ViewTarget};
@@ -278,7 +278,7 @@ fn pipeline_ready(cache: &PipelineCache, id: CachedRenderPipelineId, status: &Sh
     if cache.get_render_pipeline(id).is_some() {
         return true;
     }
-    if let CachedPipelineState::Err(e) = cache.get_render_pipeline_state(id) {
+    if let Some(e) = super::compile_failure(cache.get_render_pipeline_state(id)) {
         let msg = format!("the ray-marching shaders failed to compile: {e}");
         status.update(|s| s.error = Some(msg));
     }
