@@ -79,15 +79,19 @@ pub struct Placed {
 /// out.
 pub fn assign(file: &SplatFile, geom: &GridGeom, placed: &[Placed]) -> Vec<bool> {
     let mut keep = vec![false; file.len()];
-    let colour = |i: u32| dc(file, i as usize);
-    // The references, sorted by cell so that a row of cells is a
-    // contiguous run found by binary search.
-    let mut refs: Vec<(u32, u32, bool)> = placed
+    // The references with their colours, sorted by cell so that a row of
+    // cells is a contiguous run found by binary search.
+    let mut refs: Vec<Reference> = placed
         .iter()
         .filter(|p| p.on >= REFERENCE || p.on <= 1.0 - REFERENCE)
-        .map(|p| (p.cell, p.index, p.on >= 0.5))
+        .map(|p| Reference {
+            cell: p.cell,
+            index: p.index,
+            on: p.on >= 0.5,
+            colour: dc(file, p.index as usize),
+        })
         .collect();
-    refs.par_sort_unstable_by_key(|w| w.0);
+    refs.par_sort_unstable_by_key(|r| r.cell);
     let decided: Vec<(u32, bool)> = placed
         .par_iter()
         .map(|p| {
@@ -95,7 +99,7 @@ pub fn assign(file: &SplatFile, geom: &GridGeom, placed: &[Placed]) -> Vec<bool>
             if !straddles(p.on) {
                 return (p.index, by_mass);
             }
-            let side = colour_side(&refs, geom, p, colour(p.index), &colour);
+            let side = colour_side(&refs, geom, p, dc(file, p.index as usize));
             (p.index, side.unwrap_or(by_mass))
         })
         .collect();
@@ -115,6 +119,16 @@ fn dc(file: &SplatFile, i: usize) -> Vec3 {
     let r = file.record(i);
     let o = file.header.layout.dc;
     Vec3::new(f32_at(r, o[0]), f32_at(r, o[1]), f32_at(r, o[2]))
+}
+
+/// A Gaussian (nearly) wholly on one side, which straddlers near it are
+/// compared with.
+struct Reference {
+    cell: u32,
+    index: u32,
+    /// On the bitmap.
+    on: bool,
+    colour: Vec3,
 }
 
 /// The colours of the references on one side of a straddler: count, sum
@@ -144,22 +158,16 @@ impl Side {
 /// The side (true: the bitmap's) whose references around `p` colour `c`
 /// is clearly nearer, if the two sides' colours are told apart there: at
 /// least [`MIN_REFERENCES`] references on each side within [`REACH`] grid
-/// points of `p` (`refs`: cell, index, on the bitmap; `p` itself left out),
+/// points of `p` (`refs` sorted by cell; `p` itself left out),
 /// their means [`SEPARATION`] times their spreads apart, and `c` [`CLEARER`]
 /// times nearer one mean than the other.
-fn colour_side(
-    refs: &[(u32, u32, bool)],
-    geom: &GridGeom,
-    p: &Placed,
-    c: Vec3,
-    colour: &impl Fn(u32) -> Vec3,
-) -> Option<bool> {
+fn colour_side(refs: &[Reference], geom: &GridGeom, p: &Placed, c: Vec3) -> Option<bool> {
     let mut sides = [Side::default(); 2];
     for (first, last) in neighbour_rows(geom, p.cell as usize) {
-        let start = refs.partition_point(|w| w.0 < first);
-        let run = refs[start..].iter().take_while(|w| w.0 <= last);
-        for &(_, index, on) in run.filter(|w| w.1 != p.index) {
-            sides[on as usize].add(colour(index));
+        let start = refs.partition_point(|r| r.cell < first);
+        let run = refs[start..].iter().take_while(|r| r.cell <= last);
+        for r in run.filter(|r| r.index != p.index) {
+            sides[r.on as usize].add(r.colour);
         }
     }
     let [out, inn] = sides;

@@ -37,12 +37,12 @@ use bevy::render::extract_resource::{ExtractResource, ExtractResourcePlugin};
 use bevy::render::render_resource::binding_types::{
     sampler, storage_buffer_read_only_sized, texture_3d, uniform_buffer_sized,
 };
-use bevy::render::render_resource::CachedPipelineState;
 use bevy::render::render_resource::{
     AddressMode, BindGroupLayoutDescriptor, BindGroupLayoutEntries, Buffer, BufferInitDescriptor, BufferUsages,
-    ColorTargetState, ColorWrites, Extent3d, FilterMode, FragmentState, RenderPipelineDescriptor, Sampler,
-    SamplerBindingType, SamplerDescriptor, ShaderStages, SpecializedRenderPipeline, SpecializedRenderPipelines,
-    TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType, TextureUsages, TextureView,
+    CachedPipelineState, ColorTargetState, ColorWrites, Extent3d, FilterMode, FragmentState, RenderPipelineDescriptor,
+    Sampler, SamplerBindingType, SamplerDescriptor, ShaderStages, SpecializedRenderPipeline,
+    SpecializedRenderPipelines, TextureDescriptor, TextureDimension, TextureFormat, TextureSampleType, TextureUsages,
+    TextureView,
 };
 use bevy::render::renderer::{RenderDevice, RenderQueue};
 use bevy::render::{Render, RenderApp, RenderStartup, RenderSystems};
@@ -315,8 +315,6 @@ const MARCH_COLOR_FORMAT: TextureFormat = TextureFormat::Rgba16Float;
 /// The march's depth target (the clip-space depth as a colour).
 const MARCH_DEPTH_FORMAT: TextureFormat = TextureFormat::R32Float;
 
-/// The bound on the layer count a march pipeline is specialised for: 1, 2,
-/// 4 or [`pack::MAX_LAYERS`] (see the shader's `MAX_LAYERS`).
 /// A pipeline's compile failure, to report; `None` while it is queued,
 /// compiling or waiting for a shader asset to load. bevy keeps a pipeline
 /// queued before its shader has loaded in `Err(ShaderNotLoaded)` and
@@ -332,6 +330,8 @@ fn compile_failure(state: &CachedPipelineState) -> Option<&ShaderCacheError> {
     }
 }
 
+/// The bound on the layer count a march pipeline is specialised for: 1, 2,
+/// 4 or [`pack::MAX_LAYERS`] (see the shader's `MAX_LAYERS`).
 fn layer_bound(layers: usize) -> u32 {
     match layers {
         0 | 1 => 1,
