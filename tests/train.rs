@@ -825,3 +825,55 @@ fn adam_with_bf16_moments_tracks_the_f32_reference() {
     let e = t.bf16_or_f32("odd", &[2 * n]).unwrap_err().to_string();
     assert!(e.contains("odd") && e.contains("BF16"), "{e}");
 }
+
+/// Slots of a random `keep` share of `of`'s voxels (and, with `extra`,
+/// every voxel `of` lacks in the first quarter of the grid).
+fn random_slots(res: [usize; 3], of: &[u64], keep: f32, extra: bool, seed: u64) -> Slots {
+    let n = res[0] * res[1] * res[2];
+    let mut rng = SplitMix64::new(seed);
+    let mut bits = vec![0u64; n.div_ceil(64)];
+    for i in 0..n {
+        let was = bit(of, i);
+        if (was && (rng.unit() as f32) < keep) || (extra && !was && i < n / 4) {
+            bits[i / 64] |= 1 << (i % 64);
+        }
+    }
+    Slots::new(res, &bits)
+}
+
+#[test]
+fn rows_remapped_in_place_match_the_copying_remap() {
+    use isrf::train::model::{remap_rows, remap_rows_in_place};
+    let res: [usize; 3] = [13, 11, 7];
+    let n = res[0] * res[1] * res[2];
+    let mut rng = SplitMix64::new(5);
+    let mut active = vec![0u64; n.div_ceil(64)];
+    for i in 0..n {
+        if rng.unit() < 0.6 {
+            active[i / 64] |= 1 << (i % 64);
+        }
+    }
+    let old = Slots::new(res, &active);
+    for stride in [1, 3, 27] {
+        let values: Vec<f32> = (0..old.len() * stride).map(|i| i as f32 + 0.5).collect();
+        // A prune (a subset, moved forward in place) and a growth (copied).
+        for (keep, extra) in [(0.5, false), (1.0, false), (0.0, false), (0.7, true)] {
+            let new = random_slots(res, &active, keep, extra, 9 + stride as u64);
+            let want = remap_rows(&values, &old, &new, stride);
+            let mut got = values.clone();
+            remap_rows_in_place(&mut got, &old, &new, stride);
+            assert_eq!(got, want, "stride {stride}, keep {keep}, extra {extra}");
+            assert_eq!(got.len(), new.len() * stride);
+        }
+    }
+    // Moments follow the same rule, both of them.
+    let new = random_slots(res, &active, 0.5, false, 3);
+    let mut mom = Moments::new(old.len() * 2);
+    for (i, (m, v)) in mom.m.iter_mut().zip(mom.v.iter_mut()).enumerate() {
+        *m = half::bf16::from_f32(i as f32);
+        *v = half::bf16::from_f32(-(i as f32));
+    }
+    let want = mom.remap(&old, &new, 2);
+    mom.remap_in_place(&old, &new, 2);
+    assert_eq!((mom.m, mom.v), (want.m, want.v));
+}

@@ -241,7 +241,8 @@ impl Model {
     pub fn refresh_masks(&mut self) {
         let old = std::mem::replace(&mut self.slots, Slots::new([0; 3], &[]));
         self.rebuild_masks();
-        self.sh = remap_rows(&self.sh, &old, &self.slots, self.sh_stride());
+        let stride = self.sh_stride();
+        remap_rows_in_place(&mut self.sh, &old, &self.slots, stride);
     }
 
     /// Recomputes the cell and block masks and the slots from `active`;
@@ -574,6 +575,34 @@ impl Model {
 /// voxels' worth. The haze a first stage leaves comes in groups of well
 /// under one; a real part the coarse grid resolves holds several.
 pub const SOLID_COMPONENT_MASS: f64 = 4.0;
+
+/// [`remap_rows`] into `values` itself. When every voxel of `new` is one
+/// of `old`'s (a prune), row s of `new` comes from a row o ≥ s of `old`
+/// (both ascending by voxel), so the rows move forward one by one and no
+/// second array is held: on the fern's `--preset best` grid the colour rows
+/// are 580 MB, and their copy during a prune, beside the gradient buffers,
+/// was the training run's peak. Otherwise (voxels added) it copies.
+pub fn remap_rows_in_place<T: Copy + Default + Send + Sync>(
+    values: &mut Vec<T>,
+    old: &Slots,
+    new: &Slots,
+    stride: usize,
+) {
+    if !new.voxels.iter().all(|&v| old.slot(v as usize).is_some()) {
+        *values = remap_rows(values, old, new, stride);
+        return;
+    }
+    for (s, &voxel) in new.voxels.iter().enumerate() {
+        let o = old.slot(voxel as usize).unwrap_or(s);
+        if o != s {
+            values.copy_within(o * stride..(o + 1) * stride, s * stride);
+        }
+    }
+    values.truncate(new.len() * stride);
+    // Large buffers are mapped on their own (`mallopt` in main), so this
+    // gives the tail back without copying.
+    values.shrink_to_fit();
+}
 
 /// Per-slot rows (`stride` values each) of `old`'s slots renumbered for
 /// `new`; voxels `old` lacks get zeros.

@@ -14,7 +14,7 @@
 //! computes in f32 from them and rounds once when storing; the rounding
 //! (≤ 0.4 %) is far below what the β's average over.
 
-use super::model::{remap_rows, Slots};
+use super::model::{remap_rows, remap_rows_in_place, Slots};
 use crate::util::SplitMix64;
 use half::bf16;
 use rayon::prelude::*;
@@ -63,6 +63,12 @@ impl Moments {
             m: remap_rows(&self.m, old, new, stride),
             v: remap_rows(&self.v, old, new, stride),
         }
+    }
+    /// [`Moments::remap`] in place ([`remap_rows_in_place`]: no copy when
+    /// `new` only drops slots).
+    pub fn remap_in_place(&mut self, old: &Slots, new: &Slots, stride: usize) {
+        remap_rows_in_place(&mut self.m, old, new, stride);
+        remap_rows_in_place(&mut self.v, old, new, stride);
     }
 }
 

@@ -526,6 +526,10 @@ impl Trainer {
             if self.iter != start || start == 0 {
                 continue;
             }
+            // Gradients and moments start anew at the new resolution
+            // (`reset_buffers(false)` below): not held while it is built.
+            self.free_grads();
+            self.opt = OptState::default();
             let step = self.step_size();
             let kept = self
                 .model
@@ -597,6 +601,9 @@ impl Trainer {
     /// Prunes between stage changes: Adam keeps the moments of the voxels
     /// that stay (renumbered to the new slots); gradient buffers shrink.
     fn prune_within_stage(&mut self) -> usize {
+        // The gradient buffers are rebuilt for the new slots below: free
+        // them first, so that they are not held while the rows move.
+        self.free_grads();
         let old = self.model.slots.clone();
         let kept = self
             .model
@@ -604,10 +611,17 @@ impl Trainer {
         let new = &self.model.slots;
         let stride = self.model.sh_stride();
         // The model renumbered its own colour rows; the moments follow.
-        self.opt.density = self.opt.density.remap(&old, new, 1);
-        self.opt.sh = self.opt.sh.remap(&old, new, stride);
+        self.opt.density.remap_in_place(&old, new, 1);
+        self.opt.sh.remap_in_place(&old, new, stride);
         self.reset_buffers(true);
         kept
+    }
+
+    /// Drops the gradient buffers and per-thread logs ([`Self::reset_buffers`]
+    /// makes new ones).
+    fn free_grads(&mut self) {
+        self.grads = GradBuf::default();
+        self.logs.clear();
     }
 
     /// Learning-rate multiplier at the current iteration (exponential decay
