@@ -592,8 +592,8 @@ pub fn remap_rows_in_place<T: Copy + Default + Send + Sync>(
         *values = remap_rows(values, old, new, stride);
         return;
     }
-    for (s, &voxel) in new.voxels.iter().enumerate() {
-        let o = old.slot(voxel as usize).unwrap_or(s);
+    // Every voxel has an old slot (checked above), so s counts new slots.
+    for (s, o) in new.voxels.iter().filter_map(|&v| old.slot(v as usize)).enumerate() {
         if o != s {
             values.copy_within(o * stride..(o + 1) * stride, s * stride);
         }

@@ -426,7 +426,7 @@ impl Trainer {
     fn reset_buffers(&mut self, keep_moments: bool) {
         let nt = rayon::current_num_threads().max(1);
         // Free the old buffers before allocating new ones (peak memory).
-        self.grads = GradBuf::default();
+        self.free_grads();
         // A frozen field needs neither gradients nor moments for density
         // and SH colour (on lego's 320 grid, 730 MB each).
         let radiance = !self.radiance_frozen();
