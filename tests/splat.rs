@@ -360,6 +360,7 @@ fn one_stroke_selects_an_objects_splats() {
             },
             ..Default::default()
         },
+        diagnose: false,
     };
     let rows = bench_splats(&cfg, &|m| eprintln!("{m}")).unwrap();
     for r in &rows {

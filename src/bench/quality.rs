@@ -944,6 +944,19 @@ fn stage_rows(
     params: &SegmentParams,
     cut: &Bitmap,
 ) -> Result<Vec<StageRow>> {
+    let mut rows = vec![];
+    for (stage, p) in stage_params(params) {
+        let (region, _) = region_from_stroke(render_scene, cache, stroke, &p)?;
+        rows.push(StageRow::score(stage, &region, truth));
+    }
+    rows.push(StageRow::score("cut".into(), cut, truth));
+    Ok(rows)
+}
+
+/// The parameters that stop a stroke's segmentation after each stage
+/// before the cut ([`stage_rows`]): the NNFM seeds joined to the stroke,
+/// the stable region, and the stable flood cut at fixed thresholds.
+pub fn stage_params(params: &SegmentParams) -> Vec<(String, SegmentParams)> {
     let mut seeds = *params;
     seeds.growth = crate::segment::Growth::Steps(0);
     let mut stable = *params;
@@ -954,13 +967,7 @@ fn stage_rows(
             .into_iter()
             .filter_map(|t| at_fixed_threshold(&stable, t).map(|p| (format!("flood≤{t}"), p))),
     );
-    let mut rows = vec![];
-    for (stage, p) in stages {
-        let (region, _) = region_from_stroke(render_scene, cache, stroke, &p)?;
-        rows.push(StageRow::score(stage, &region, truth));
-    }
-    rows.push(StageRow::score("cut".into(), cut, truth));
-    Ok(rows)
+    stages
 }
 
 /// The stable rule's flood cut at threshold `t` (what the best threshold

@@ -92,6 +92,9 @@ pub struct SplatBenchConfig {
     pub work: PathBuf,
     /// Segmentation parameters of the strokes.
     pub params: SegmentParams,
+    /// Also score each stroke's selection after every stage
+    /// ([`crate::bench::quality::stage_params`]).
+    pub diagnose: bool,
 }
 
 /// One object's row.
@@ -109,6 +112,20 @@ pub struct SplatRow {
     pub missed: usize,
     /// Gaussians selected that are not the object's, by the name of what
     /// they are (most first; "unlabelled" for label 0).
+    pub wrong: Vec<(String, usize)>,
+    /// With `diagnose`: the selection after each stage of the stroke, the
+    /// defaults' last.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub stages: Vec<SplatStage>,
+}
+
+/// What one stage of a stroke's segmentation selects, in Gaussians.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SplatStage {
+    pub stage: String,
+    pub selected: usize,
+    pub iou_count: f64,
+    pub missed: usize,
     pub wrong: Vec<(String, usize)>,
 }
 
@@ -129,7 +146,7 @@ pub fn bench_splats(cfg: &SplatBenchConfig, log: &(dyn Fn(&str) + Sync)) -> Resu
         ));
         let field = Arc::new(field);
         let oracle = oracle_features(&scene, &field, cfg.orbit)?;
-        rows.extend(score_objects(&scene, &synth, &oracle, "oracle", &cfg.params)?);
+        rows.extend(score_objects(&scene, &synth, &oracle, "oracle", cfg)?);
         if let Some(teacher) = &cfg.teacher {
             let views = orbit_views(&field, cfg.orbit, &|_, _| ())?;
             let (with, lr) = lift(
@@ -146,7 +163,7 @@ pub fn bench_splats(cfg: &SplatBenchConfig, log: &(dyn Fn(&str) + Sync)) -> Resu
                 100.0 * lr.seen as f64 / lr.points.max(1) as f64
             ));
             with.save(&cfg.work.join(format!("{name}.features.safetensors")))?;
-            rows.extend(score_objects(&scene, &synth, &with, "vit", &cfg.params)?);
+            rows.extend(score_objects(&scene, &synth, &with, "vit", cfg)?);
         }
     }
     Ok(rows)
@@ -175,7 +192,7 @@ fn score_objects(
     synth: &SynthScene,
     field: &Field,
     features: &str,
-    params: &SegmentParams,
+    cfg: &SplatBenchConfig,
 ) -> Result<Vec<SplatRow>> {
     let field = Arc::new(field.clone());
     let file = crate::splat::export::source_file(&field)?;
@@ -187,20 +204,38 @@ fn score_objects(
         let Some(stroke) = crate::eval::protocol::demo_stroke(scene, &o.name) else {
             continue;
         };
-        let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, params)?;
-        let picked = inside(&file, &field.geom(), &region);
         let truth: Vec<bool> = synth.labels.iter().map(|&l| l == o.label).collect();
-        let missed = (0..truth.len()).filter(|&i| truth[i] && !picked[i]).count();
+        let select = |p: &SegmentParams| -> Result<Vec<bool>> {
+            let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, p)?;
+            Ok(inside(&file, &field.geom(), &region))
+        };
+        let stage = |name: String, picked: &[bool]| SplatStage {
+            stage: name,
+            selected: picked.iter().filter(|&&t| t).count(),
+            iou_count: iou(picked, &truth, |_| 1.0),
+            missed: (0..truth.len()).filter(|&i| truth[i] && !picked[i]).count(),
+            wrong: wrong_by_label(scene, synth, picked, o.label),
+        };
+        let picked = select(&cfg.params)?;
+        let mut stages = vec![];
+        if cfg.diagnose {
+            for (name, p) in crate::bench::quality::stage_params(&cfg.params) {
+                stages.push(stage(name, &select(&p)?));
+            }
+            stages.push(stage("cut".into(), &picked));
+        }
+        let last = stage(String::new(), &picked);
         rows.push(SplatRow {
-            missed,
-            wrong: wrong_by_label(scene, synth, &picked, o.label),
+            missed: last.missed,
+            wrong: last.wrong,
             scene: scene.name.clone(),
             features: features.to_string(),
             object: o.name.clone(),
             true_gaussians: truth.iter().filter(|&&t| t).count(),
-            selected: picked.iter().filter(|&&t| t).count(),
-            iou_count: iou(&picked, &truth, |_| 1.0),
+            selected: last.selected,
+            iou_count: last.iou_count,
             iou_mass: iou(&picked, &truth, |i| mass[i]),
+            stages,
         });
     }
     Ok(rows)

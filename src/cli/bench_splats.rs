@@ -76,6 +76,11 @@ pub struct SplatArgs {
     /// Work folder for the .ply and field files.
     #[arg(long, default_value = "target/bench-splats")]
     pub work: PathBuf,
+    /// Also score each stroke's selection after every stage (seeds, stable
+    /// region, the flood at fixed thresholds, the cut) and name what each
+    /// selects wrongly.
+    #[arg(long)]
+    pub diagnose: bool,
     #[command(flatten)]
     pub params: super::segment::ParamArgs,
 }
@@ -104,6 +109,7 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
         cache_dir: default_cache_dir(),
         work: a.work,
         params: a.params.params()?,
+        diagnose: a.diagnose,
     };
     let rows = bench_splats(&cfg, &|m| eprintln!("{m}"))?;
     println!(
@@ -128,6 +134,25 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
             r.missed,
             wrong.join(", ")
         );
+    }
+    for r in &rows {
+        for st in &r.stages {
+            let wrong: Vec<String> = st.wrong.iter().take(4).map(|(n, c)| format!("{n} {c}")).collect();
+            println!(
+                "  {:>6} {:>9} {:<9} selected {:>6}, missed {:>6}, IoU {:.3}; wrong: {}",
+                r.features,
+                r.object,
+                st.stage,
+                st.selected,
+                st.missed,
+                st.iou_count,
+                if wrong.is_empty() {
+                    "none".into()
+                } else {
+                    wrong.join(", ")
+                }
+            );
+        }
     }
     for kind in ["oracle", "vit"] {
         let rs: Vec<_> = rows.iter().filter(|r| r.features == kind).collect();

@@ -41,7 +41,11 @@ pub fn recipe(seed: u64, _voxel: f32) -> Recipe {
         "shelf",
         Kind::Shelf,
         &["boards", "sides"],
-        &[v(-0.45, top, 0.14), v(0.45, top, 0.14), v(0.59, 0.0, depth)],
+        // Along the top board and down the right side's inner face (the
+        // face the stroke camera, left of centre, sees; the side's front
+        // edge is narrower than the brush, and a stroke ending there
+        // stopped on the top board: the sides were never stroked).
+        &[v(-0.45, top, 0.14), v(0.52, top, 0.14), v(half_w - board, 0.0, 0.09)],
     );
     let wood = Material::Wood {
         rgb: v(0.74, 0.56, 0.37),
