@@ -360,13 +360,23 @@ fn one_stroke_selects_an_objects_splats() {
             },
             ..Default::default()
         },
-        diagnose: false,
+        diagnose: true,
     };
     let rows = bench_splats(&cfg, &|m| eprintln!("{m}")).unwrap();
     for r in &rows {
         eprintln!(
             "{} {}: IoU {:.3} by count, {:.3} by mass",
             r.scene, r.object, r.iou_count, r.iou_mass
+        );
+        // The diagnosis: seeds, stable region, six fixed floods (0.4 … 1.2
+        // past θ 0.3), then the cut, which is the row's own selection.
+        let names: Vec<&str> = r.stages.iter().map(|s| s.stage.as_str()).collect();
+        assert_eq!(names.len(), 9, "{names:?}");
+        assert_eq!((names[0], names[1], names[8]), ("seeds", "stable", "cut"));
+        let cut = &r.stages[8];
+        assert_eq!(
+            (cut.selected, cut.missed, cut.iou_count),
+            (r.selected, r.missed, r.iou_count)
         );
     }
     let iou = |name: &str| rows.iter().find(|r| r.object == name).unwrap().iou_count;

@@ -24,6 +24,16 @@ use std::time::Instant;
 /// Per-label counts (`per[label]`) named by `labels` ("unlabelled" for
 /// 0), `skip` and zero counts left out, most first: what a selection of
 /// `skip` took wrongly.
+/// The first four of `wrong` (what a stage selected wrongly, most first)
+/// as "name count, ...", or "none".
+pub fn wrong_summary(wrong: &[(String, usize)]) -> String {
+    if wrong.is_empty() {
+        return "none".into();
+    }
+    let first: Vec<String> = wrong.iter().take(4).map(|(n, c)| format!("{n} {c}")).collect();
+    first.join(", ")
+}
+
 pub fn wrong_by_name(per: &[usize], labels: &crate::demo::labels::Labels, skip: u8) -> Vec<(String, usize)> {
     let mut wrong: Vec<(String, usize)> = (0..=u8::MAX)
         .zip(per)

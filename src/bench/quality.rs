@@ -1011,7 +1011,6 @@ pub fn stage_lines(r: &QualityReport) -> Vec<String> {
     let mut out = vec![];
     for o in &r.objects {
         for st in &o.stages {
-            let wrong: Vec<String> = st.wrong.iter().take(4).map(|(n, c)| format!("{n} {c}")).collect();
             out.push(format!(
                 "  {:>9} {:<7} selected {:>6}, right {:>6}, missed {:>6}, 3D IoU {:.3}; wrong: {}",
                 o.object,
@@ -1020,11 +1019,7 @@ pub fn stage_lines(r: &QualityReport) -> Vec<String> {
                 st.true_positive,
                 st.missed,
                 st.iou3d,
-                if wrong.is_empty() {
-                    "none".into()
-                } else {
-                    wrong.join(", ")
-                }
+                super::wrong_summary(&st.wrong)
             ));
         }
     }

@@ -137,7 +137,6 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
     }
     for r in &rows {
         for st in &r.stages {
-            let wrong: Vec<String> = st.wrong.iter().take(4).map(|(n, c)| format!("{n} {c}")).collect();
             println!(
                 "  {:>6} {:>9} {:<9} selected {:>6}, missed {:>6}, IoU {:.3}; wrong: {}",
                 r.features,
@@ -146,11 +145,7 @@ pub fn run_splats(a: SplatArgs) -> Result<()> {
                 st.selected,
                 st.missed,
                 st.iou_count,
-                if wrong.is_empty() {
-                    "none".into()
-                } else {
-                    wrong.join(", ")
-                }
+                isrf::bench::wrong_summary(&st.wrong)
             );
         }
     }
