@@ -13,6 +13,7 @@ pub mod kmeans;
 pub mod maxflow;
 pub mod nnfm;
 pub mod palette;
+pub mod peel;
 pub mod plane;
 pub mod stable;
 pub mod stroke;
@@ -451,6 +452,15 @@ fn segment_anchored(
         let region = match &surface {
             Some(colours) => along_surface(cache, floor, region, colours),
             None => region,
+        };
+        // The support's ring the cut took with the object ([`peel`]).
+        let region = match field {
+            Some(_) if !stroke.palette.is_empty() => {
+                let shows = stroke.palette.table(LIKE_STROKE);
+                let peeled = peel::peel_support(cache, &cache.solid(floor), region, peel::ROUNDS, |c| shows.shows(c));
+                anchor::joined_seeds(&peeled, anchors, anchor::radius(cache)).unwrap_or(peeled)
+            }
+            _ => region,
         };
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
