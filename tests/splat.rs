@@ -378,6 +378,16 @@ fn one_stroke_selects_an_objects_splats() {
             (cut.selected, cut.missed, cut.iou_count),
             (r.selected, r.missed, r.iou_count)
         );
+        // Each stage's counts add up: what it selected is the object's
+        // Gaussians it kept plus the wrong ones by name, and its IoU is the
+        // kept over selected and missed.
+        for st in &r.stages {
+            let kept = r.true_gaussians - st.missed;
+            let wrong: usize = st.wrong.iter().map(|(_, n)| n).sum();
+            assert_eq!(st.selected, kept + wrong, "{} {st:?}", r.object);
+            let iou = kept as f64 / (st.selected + st.missed).max(1) as f64;
+            assert!((st.iou_count - iou).abs() < 1e-12, "{} {st:?}", r.object);
+        }
     }
     let iou = |name: &str| rows.iter().find(|r| r.object == name).unwrap().iou_count;
     assert!(iou("table") > 0.85 && iou("pot") > 0.7, "{rows:?}");

@@ -21,9 +21,6 @@ pub mod train;
 use std::fmt;
 use std::time::Instant;
 
-/// Per-label counts (`per[label]`) named by `labels` ("unlabelled" for
-/// 0), `skip` and zero counts left out, most first: what a selection of
-/// `skip` took wrongly.
 /// The first four of `wrong` (what a stage selected wrongly, most first)
 /// as "name count, ...", or "none".
 pub fn wrong_summary(wrong: &[(String, usize)]) -> String {
@@ -34,6 +31,9 @@ pub fn wrong_summary(wrong: &[(String, usize)]) -> String {
     first.join(", ")
 }
 
+/// Per-label counts (`per[label]`) named by `labels` ("unlabelled" for
+/// 0), `skip` and zero counts left out, most first: what a selection of
+/// `skip` took wrongly.
 pub fn wrong_by_name(per: &[usize], labels: &crate::demo::labels::Labels, skip: u8) -> Vec<(String, usize)> {
     let mut wrong: Vec<(String, usize)> = (0..=u8::MAX)
         .zip(per)

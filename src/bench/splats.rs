@@ -217,14 +217,14 @@ fn score_objects(
             wrong: wrong_by_label(scene, synth, picked, o.label),
         };
         let picked = select(&cfg.params)?;
+        let last = stage("cut".into(), &picked);
         let mut stages = vec![];
         if cfg.diagnose {
             for (name, p) in crate::bench::quality::stage_params(&cfg.params) {
                 stages.push(stage(name, &select(&p)?));
             }
-            stages.push(stage("cut".into(), &picked));
+            stages.push(last.clone());
         }
-        let last = stage(String::new(), &picked);
         rows.push(SplatRow {
             missed: last.missed,
             wrong: last.wrong,
