@@ -120,28 +120,9 @@ pub fn grow_in_slab(
     shows: impl Fn(Vec3) -> bool,
 ) -> Bitmap {
     let geom = &cache.geom;
-    let res = geom.res;
-    let mut out = region.clone();
-    let mut stack: Vec<usize> = region.ones().collect();
-    let strides = [1, res[0], res[0] * res[1]];
-    while let Some(v) = stack.pop() {
-        let c = geom.coords(v);
-        for axis in 0..3 {
-            let below = (c[axis] > 0).then(|| v - strides[axis]);
-            let above = (c[axis] + 1 < res[axis]).then(|| v + strides[axis]);
-            for n in below.into_iter().chain(above) {
-                if out.get(n) || !solid.get(n) || !slab.holds(geom.point_of(n)) {
-                    continue;
-                }
-                let Some(r) = cache.index.slot(n) else { continue };
-                if shows(cache.colours[r]) {
-                    out.set(n, true);
-                    stack.push(n);
-                }
-            }
-        }
-    }
-    out
+    super::flood::faces(geom, region, |n| {
+        solid.get(n) && slab.holds(geom.point_of(n)) && cache.index.slot(n).is_some_and(|r| shows(cache.colours[r]))
+    })
 }
 
 #[cfg(test)]
