@@ -294,12 +294,13 @@ fn colour_centres(
 /// centre of the voxels under the stroke does not look like the stroke.
 const COLOUR_UNLIKE: f32 = 0.02;
 
-/// Share of the domain whose colour does not look like the stroke's (see
-/// [`COLOUR_UNLIKE`]; centres as the cut's object colour model); 0
-/// without colours or voxels under the stroke.
-pub fn unlike_colour_share(input: &CutInput, kmeans_seed: u64) -> f32 {
+/// For each domain voxel, whether its colour does not look like the
+/// stroke's (see [`COLOUR_UNLIKE`]; centres as the cut's object colour
+/// model); all false without colours or voxels under the stroke.
+pub fn unlike_colours(input: &CutInput, kmeans_seed: u64) -> Vec<bool> {
+    let none = vec![false; input.domain.len()];
     if input.colours.is_empty() || input.domain.is_empty() {
-        return 0.0;
+        return none;
     }
     // Both lists ascend: flag the domain's voxels under the stroke in one walk.
     let mut under = vec![false; input.domain.len()];
@@ -311,10 +312,9 @@ pub fn unlike_colour_share(input: &CutInput, kmeans_seed: u64) -> f32 {
     // The object colour model `refine` fits (γ 1: plain squared distances).
     let (distance, centres) = colour_term(input.colours, &under, 5, kmeans_seed, 1.0, None);
     if centres.is_none() {
-        return 0.0;
+        return none;
     }
-    let far = distance.iter().filter(|&&d| d > COLOUR_UNLIKE).count();
-    far as f32 / input.domain.len() as f32
+    distance.iter().map(|&d| d > COLOUR_UNLIKE).collect()
 }
 
 /// The background and colour models' Lloyd iterations stop once no centre
@@ -496,12 +496,12 @@ mod tests {
     /// on the red end finds the 10 blue slices unlike it, one on the blue
     /// end the 14 red ones.
     #[test]
-    fn the_unlike_colour_share_counts_the_domain_unlike_the_stroke() {
+    fn the_unlike_colours_are_the_domain_unlike_the_stroke() {
         let (cache, domain, colours) = bar_cache();
         let res = cache.geom.res;
         let zeros = vec![0.0; domain.len()];
         let region = Bitmap::new(res);
-        for (slice, want) in [(0, 10.0 / 24.0), (23, 14.0 / 24.0)] {
+        for slice in [0, 23] {
             let hard: Vec<u32> = domain
                 .iter()
                 .copied()
@@ -519,8 +519,12 @@ mod tests {
                 unlike: 0.0,
                 not_background: &[],
             };
-            let got = unlike_colour_share(&input, 0);
-            assert!((got - want).abs() < 1e-6, "stroke on slice {slice}: {got}, want {want}");
+            let got = unlike_colours(&input, 0);
+            let red = |x: usize| x < 14;
+            let want: Vec<bool> = domain.iter().map(|&v| red(v as usize % res[0]) != red(slice)).collect();
+            assert_eq!(got, want, "stroke on slice {slice}");
+            let unlike_slices = if red(slice) { 10 } else { 14 };
+            assert_eq!(got.iter().filter(|&&u| u).count() * 24, unlike_slices * domain.len());
         }
     }
 
