@@ -4,11 +4,14 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Field file (.safetensors)
+    /// Field file (.safetensors), or a composition (.json / .ron)
     pub field: PathBuf,
 }
 
 pub fn run(a: Args) -> Result<()> {
+    if isrf::command::script::Format::of(&a.field).is_ok() {
+        return composition(&a.field);
+    }
     let field = Field::load(&a.field)?;
     let len = std::fs::metadata(&a.field)?.len();
     let (header, _) = io::read_header(&a.field)?;
@@ -84,4 +87,79 @@ pub fn run(a: Args) -> Result<()> {
         dense as f64 / stored.max(1) as f64
     );
     Ok(())
+}
+
+/// A composition's fields and objects, opened (and so checked: field
+/// files against their recorded CRC, bitmaps against their fields) as
+/// `isrf edit` opens it.
+fn composition(path: &std::path::Path) -> Result<()> {
+    let session = isrf::command::composition::load(path, &std::env::temp_dir())?;
+    let st = session.state();
+    println!("{}", path.display());
+    println!(
+        "  format      {} v{}",
+        isrf::command::composition::FORMAT,
+        isrf::command::composition::VERSION
+    );
+    println!("  background  {:?}", st.background);
+    for f in &st.fields {
+        let source = match &f.source {
+            isrf::command::FieldSource::File(p) => p.display().to_string(),
+            other => serde_json::to_string(other)?,
+        };
+        let res = f.field.res();
+        let shown = if f.placement.visible { "" } else { ", hidden" };
+        println!(
+            "  field       '{}': {source}, {} x {} x {}{}{shown}",
+            f.name,
+            res[0],
+            res[1],
+            res[2],
+            placement(&f.placement.transform)
+        );
+    }
+    for o in &st.objects {
+        let field = st
+            .fields
+            .iter()
+            .find(|f| f.id == o.field)
+            .map_or("?", |f| f.name.as_str());
+        let p = &o.placement;
+        let flags: Vec<&str> = [
+            (p.removed, "removed"),
+            (!p.visible, "hidden"),
+            (p.duplicate, "duplicate"),
+            (p.color_edit.is_some(), "colour edit"),
+        ]
+        .into_iter()
+        .filter_map(|(on, name)| on.then_some(name))
+        .collect();
+        let flags = if flags.is_empty() {
+            String::new()
+        } else {
+            format!(", {}", flags.join(", "))
+        };
+        println!(
+            "  object      '{}' of '{field}': {} voxels{}{flags}",
+            o.name,
+            o.mask.count(),
+            placement(&p.transform)
+        );
+    }
+    Ok(())
+}
+
+/// A placement in words: nothing for the identity, else the translation
+/// and whether it also rotates or scales.
+fn placement(t: &glam::Affine3A) -> String {
+    if *t == glam::Affine3A::IDENTITY {
+        return String::new();
+    }
+    let d = t.translation;
+    let linear = if t.matrix3 == glam::Mat3A::IDENTITY {
+        ""
+    } else {
+        ", rotated / scaled"
+    };
+    format!(", moved by [{:.3}, {:.3}, {:.3}]{linear}", d.x, d.y, d.z)
 }
