@@ -502,9 +502,15 @@ fn compositions_round_trip_and_report_changed_files() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let text = String::from_utf8_lossy(&out.stdout);
     let voxels = s.state().objects[0].mask.count();
-    assert!(text.contains(&format!("'pot' of 'room': {voxels} voxels, moved by [")), "{text}");
+    assert!(
+        text.contains(&format!("'pot' of 'room': {voxels} voxels, moved by [")),
+        "{text}"
+    );
     assert!(text.contains("rotated / scaled, colour edit"), "{text}");
-    let shelf = text.lines().find(|l| l.contains("field       'shelf'")).unwrap_or_default();
+    let shelf = text
+        .lines()
+        .find(|l| l.contains("field       'shelf'"))
+        .unwrap_or_default();
     assert!(shelf.ends_with(", hidden"), "{text}");
     // A misspelt object key is refused, naming the object and the key.
     let mut typo = json.clone();
