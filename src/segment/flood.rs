@@ -2,29 +2,35 @@
 
 use crate::field::{Bitmap, GridGeom};
 
+/// The face neighbours of voxel `v` of `geom` (up to six; fewer on the
+/// grid's border).
+pub fn face_neighbours(geom: &GridGeom, v: usize) -> impl Iterator<Item = usize> {
+    let res = geom.res;
+    let strides = [1, res[0], res[0] * res[1]];
+    let c = geom.coords(v);
+    (0..3).flat_map(move |axis| {
+        let below = (c[axis] > 0).then(|| v - strides[axis]);
+        let above = (c[axis] + 1 < res[axis]).then(|| v + strides[axis]);
+        below.into_iter().chain(above)
+    })
+}
+
 /// `region` grown through the 6-neighbours (grid indices of `geom`) that
 /// `admit` accepts, until none is left. Each voxel outside `region` is
 /// asked at most once, so `admit` may measure something costly.
 pub fn faces(geom: &GridGeom, region: &Bitmap, mut admit: impl FnMut(usize) -> bool) -> Bitmap {
-    let res = geom.res;
-    let strides = [1, res[0], res[0] * res[1]];
     let mut out = region.clone();
     let mut asked = region.clone();
     let mut stack: Vec<usize> = region.ones().collect();
     while let Some(v) = stack.pop() {
-        let c = geom.coords(v);
-        for axis in 0..3 {
-            let below = (c[axis] > 0).then(|| v - strides[axis]);
-            let above = (c[axis] + 1 < res[axis]).then(|| v + strides[axis]);
-            for n in below.into_iter().chain(above) {
-                if asked.get(n) {
-                    continue;
-                }
-                asked.set(n, true);
-                if admit(n) {
-                    out.set(n, true);
-                    stack.push(n);
-                }
+        for n in face_neighbours(geom, v) {
+            if asked.get(n) {
+                continue;
+            }
+            asked.set(n, true);
+            if admit(n) {
+                out.set(n, true);
+                stack.push(n);
             }
         }
     }

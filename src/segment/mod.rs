@@ -440,15 +440,18 @@ fn segment_anchored(
         // `cut_region`); its colours, where they tell things apart. Both
         // uses refine the stable region, as the cut does, so `--cut-rounds
         // 0` leaves the stable region alone.
+        let like_stroke = stroke.palette.table(LIKE_STROKE);
         let surface = match field {
-            Some(_) if s.threshold <= p.theta && p.cut.rounds > 0 => surface_colours(&stroke.palette, &cache.colours),
+            Some(_) if s.threshold <= p.theta && p.cut.rounds > 0 => {
+                surface_colours(&stroke.palette, &like_stroke, &cache.colours)
+            }
             _ => None,
         };
         let seeds = Seeds {
             region: &region,
             hard: &hard,
             anchors,
-            surface: surface.as_ref(),
+            surface,
         };
         let cut = cut_region(cache, field, &mut dist, &s, &seeds, negatives, p, &mut t.cut);
         // A cut against the stroke-unlike colours alone kept the seeds'
@@ -456,11 +459,10 @@ fn segment_anchored(
         // object's too, as on a drifting surface.
         let by_colour = cut.as_ref().is_some_and(|c| c.against_colours);
         let region = cut.map_or(s.region, |c| c.region);
-        let like_stroke = stroke.palette.table(LIKE_STROKE);
-        let region = match (&surface, by_colour) {
-            (Some(colours), _) => along_surface(cache, floor, region, colours, &stroke.palette, &mut dist),
-            (None, true) => along_surface(cache, floor, region, &like_stroke, &stroke.palette, &mut dist),
-            (None, false) => region,
+        let region = if surface.is_some() || by_colour {
+            along_surface(cache, floor, region, &like_stroke, &stroke.palette, &mut dist)
+        } else {
+            region
         };
         // The support's ring the cut took with the object ([`peel`]).
         let region = match field {
@@ -636,17 +638,18 @@ const LIKE_STROKE: f32 = 0.02;
 /// drifting features need it: [`material`]). (The share of the stroke's own flood does not tell the
 /// two apart: the fern's floods and the splat benchmark's floor and wall
 /// both look wholly like their strokes.)
-fn surface_colours<'a>(palette: &'a Palette, scene: &[glam::Vec3]) -> Option<PaletteTable<'a>> {
-    if palette.is_empty() {
-        return None;
-    }
-    let table = palette.table(LIKE_STROKE);
-    (scene_share(&table, scene) <= MOSTLY_LIKE).then_some(table)
+/// `table` is `palette`'s at [`LIKE_STROKE`].
+fn surface_colours<'t, 'p>(
+    palette: &Palette,
+    table: &'t PaletteTable<'p>,
+    scene: &[glam::Vec3],
+) -> Option<&'t PaletteTable<'p>> {
+    (!palette.is_empty() && scene_share(table, scene) <= MOSTLY_LIKE).then_some(table)
 }
 
 /// `region`, on a drifting surface, continued through its colours: along
-/// its slab through solid voxels (σ above `floor`) of the surface's
-/// `colours` when it is flat ([`plane`]), else through opaque voxels of
+/// its slab through solid voxels (σ above `floor`) of `colours` (those
+/// that look like the stroke's) when it is flat ([`plane`]), else through opaque voxels of
 /// the stroke's own material (`palette`, the stroke's pixels' colours)
 /// whose features are not the opposite of the stroke's ([`material`]).
 fn along_surface(
@@ -1195,14 +1198,16 @@ mod tests {
         let palette = Palette::new(&[red, Vec3::new(0.85, 0.15, 0.1)]);
         let flood = [red, grey, Vec3::new(0.95, 0.05, 0.1), Vec3::new(0.1, 0.1, 0.9)];
         let scene: Vec<Vec3> = (0..300).map(|i| if i % 3 == 0 { red } else { grey }).collect();
-        let shown = |t: PaletteTable| flood.iter().map(|&c| t.shows(c)).collect::<Vec<_>>();
+        let shown = |t: &PaletteTable| flood.iter().map(|&c| t.shows(c)).collect::<Vec<_>>();
+        let table = palette.table(LIKE_STROKE);
         assert_eq!(
-            surface_colours(&palette, &scene).map(shown),
+            surface_colours(&palette, &table, &scene).map(shown),
             Some(vec![true, false, true, false])
         );
         let reddish: Vec<Vec3> = (0..300).map(|i| if i % 10 == 0 { grey } else { red }).collect();
-        assert!(surface_colours(&palette, &reddish).is_none());
-        assert!(surface_colours(&Palette::default(), &scene).is_none());
+        assert!(surface_colours(&palette, &table, &reddish).is_none());
+        let none = Palette::default();
+        assert!(surface_colours(&none, &none.table(LIKE_STROKE), &scene).is_none());
         let many: Vec<Vec3> = (0..1_000_000).map(|i| if i % 4 == 1 { red } else { grey }).collect();
         let share = scene_share(&palette.table(LIKE_STROKE), &many);
         assert!((share - 0.25).abs() < 0.02, "sampled share {share}");

@@ -33,22 +33,14 @@ pub fn peel_support(
     rounds: usize,
     shown: impl Fn(Vec3) -> bool,
 ) -> Bitmap {
-    let geom = &cache.geom;
-    let res = geom.res;
-    let strides = [1, res[0], res[0] * res[1]];
     let colour = |v: usize| cache.index.slot(v).map(|r| cache.colours[r]);
     for _ in 0..rounds {
         let rim_of_support = |v: usize| {
             let Some(c) = colour(v).filter(|&c| !shown(c)) else {
                 return false;
             };
-            let at = geom.coords(v);
-            (0..3).any(|axis| {
-                let below = (at[axis] > 0).then(|| v - strides[axis]);
-                let above = (at[axis] + 1 < res[axis]).then(|| v + strides[axis]);
-                below.into_iter().chain(above).any(|n| {
-                    !region.get(n) && solid.get(n) && colour(n).is_some_and(|o| (o - c).length_squared() <= SAME_COLOUR)
-                })
+            super::flood::face_neighbours(&cache.geom, v).any(|n| {
+                !region.get(n) && solid.get(n) && colour(n).is_some_and(|o| (o - c).length_squared() <= SAME_COLOUR)
             })
         };
         let peeled: Vec<usize> = region.ones().filter(|&v| rim_of_support(v)).collect();
