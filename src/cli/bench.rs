@@ -414,7 +414,8 @@ fn run_quality(a: QualityArgs) -> Result<()> {
     }
     println!(
         "3D IoU: voxels of the trained field that a training view sees (a sample there takes ≥ 10 % of a pixel's light), \
-         labelled by the label grid at their centres or, in the blur of a surface, one voxel away \
+         labelled by the label grid at their centres or, in the blur of a surface, one voxel away, \
+         else by the true label of the pixels whose light they take most of (a surface blurred deeper, haze beside it) \
          (all: every voxel with 1 % opacity across it, seen or not, centre labels); 2D: held-out views, opacity > 0.1 (ceiling: the field's own labelled voxels, a perfect selection); \
          NVOS: stroke + {} negative strokes on the nearest objects, IoU on the held-out view where the object is largest",
         cfg.negatives
