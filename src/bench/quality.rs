@@ -1417,6 +1417,17 @@ mod tests {
         assert_eq!(seen_voxels(&s.field, &away, SEEN_WEIGHT).count(), 0);
     }
 
+    /// The highest labelled grid point of `label`.
+    fn top_of(labels: &Labels, label: u8) -> Vec3 {
+        let g = labels.geom();
+        labels
+            .mask(label)
+            .ones()
+            .map(|v| g.point_of(v))
+            .max_by(|a, b| a.y.total_cmp(&b.y))
+            .unwrap()
+    }
+
     #[test]
     fn blurred_surface_voxels_take_the_label_next_to_them() {
         let s = demo::build("tabletop", 32, 0).unwrap();
@@ -1425,13 +1436,7 @@ mod tests {
         let h = g.spacing();
         // A point half a voxel outside the ball's top: empty at its centre,
         // the ball one voxel down.
-        let top = s
-            .labels
-            .mask(ball)
-            .ones()
-            .map(|v| g.point_of(v))
-            .max_by(|a, b| a.y.total_cmp(&b.y))
-            .unwrap();
+        let top = top_of(&s.labels, ball);
         let above = top + Vec3::Y * h.y;
         assert_eq!(s.labels.at(above), 0);
         assert_eq!(label_near(&s.labels, above, h), ball);
@@ -1445,13 +1450,7 @@ mod tests {
         let ball = s.labels.label_of("ball").unwrap();
         let g = s.field.geom();
         let h = g.spacing();
-        let top = s
-            .labels
-            .mask(ball)
-            .ones()
-            .map(|v| g.point_of(v))
-            .max_by(|a, b| a.y.total_cmp(&b.y))
-            .unwrap();
+        let top = top_of(&s.labels, ball);
         // A 3×3 sheet of haze two and a half voxels over the ball's top:
         // off every labelled voxel, in front of the ball for a camera above.
         let mut hazy = s.field.clone();
