@@ -13,7 +13,7 @@
 //!   of a pixel's light), each labelled by the label grid at its centre or,
 //!   in the blur around a surface, one voxel away ([`label_near`]), and
 //!   off every labelled voxel by what it paints: the true label of the
-//!   pixels whose light it takes most of ([`painted_voxels`]; a surface
+//!   pixels whose light it takes most of ([`Seen::painted`]; a surface
 //!   blurred over more than a voxel, haze beside it). A
 //!   trained field keeps density wherever no ray could tell its value
 //!   (under the floor, inside solid objects): no image shows those voxels,
@@ -493,75 +493,43 @@ pub struct Resampled {
 /// 11 % at 20 %.
 pub const SEEN_WEIGHT: f32 = 0.1;
 
-/// The voxels of `field` that some camera sees: a sample in the voxel
-/// takes at least `min_weight` of a pixel's light (T·α along the ray, in
-/// steps of half a voxel). A trained field keeps density where no ray
-/// could tell its value (under the floor, inside solid objects); such
-/// voxels are in no image, so no method working from images can label
-/// them, and they are left out of the 3D score.
-pub fn seen_voxels(field: &Field, cameras: &[Camera], min_weight: f32) -> Bitmap {
-    let mut seen = Bitmap::new(field.geom().res);
-    for (v, _, _) in march_seen(field, cameras, min_weight, |_| 0) {
-        seen.set(v as usize, true);
-    }
-    seen
+/// What the training views see of a trained field ([`seen_voxels`]).
+pub struct Seen {
+    /// The voxels some camera sees: a sample in the voxel takes at least
+    /// `min_weight` of a pixel's light (T·α along the ray, in steps of half
+    /// a voxel). A trained field keeps density where no ray could tell its
+    /// value (under the floor, inside solid objects); such voxels are in
+    /// no image, so no method working from images can label them, and they
+    /// are left out of the 3D score.
+    pub voxels: Bitmap,
+    /// Per grid point, what it paints: the true label of the pixels whose
+    /// light it takes most of, summed over its samples (0 where that is the
+    /// empty background, and where unseen). A trained field blurs a surface
+    /// over several voxels (the tabletop's floor over five, most of them
+    /// below the true slab) and leaves haze beside it; those voxels lie off
+    /// every labelled voxel, yet every training view shows them as that
+    /// surface, and a selection that leaves them out leaves a ghost of it.
+    pub painted: Vec<u8>,
 }
 
-/// The voxels `cameras` see ([`seen_voxels`]) and what each paints: the
-/// true label (from `truth` and its `labels`) of the pixels whose light it
-/// takes most of, summed over its samples (0 where that is the empty
-/// background). A trained field blurs a surface over several voxels (the
-/// tabletop's floor over five, most of them below the true slab) and
-/// leaves haze beside it; those voxels lie off every labelled voxel, yet
-/// every training view shows them as that surface, and a selection that
-/// leaves them out leaves a ghost of it behind.
-pub fn painted_voxels(
-    field: &Field,
-    truth: &Field,
-    labels: &Labels,
-    cameras: &[Camera],
-    min_weight: f32,
-) -> (Bitmap, Vec<u8>) {
-    let geom = field.geom();
-    let mut records = march_seen(field, cameras, min_weight, |ray| pixel_label(truth, labels, ray));
-    records.par_sort_unstable_by_key(|&(v, l, _)| (v, l));
-    let mut seen = Bitmap::new(geom.res);
-    let mut painted = vec![0u8; geom.len()];
-    for group in records.chunk_by(|a, b| a.0 == b.0) {
-        let v = group[0].0 as usize;
-        seen.set(v, true);
-        // Records are sorted by label within a voxel: sum each run.
-        let best = group
-            .chunk_by(|a, b| a.1 == b.1)
-            .map(|run| (run[0].1, run.iter().map(|r| r.2).sum::<f32>()))
-            .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)));
-        painted[v] = best.map_or(0, |(l, _)| l);
-    }
-    (seen, painted)
-}
-
-/// Every sample of `cameras`' pixel rays through `field` that takes at
-/// least `min_weight` of its pixel's light, as (voxel, the ray's tag, the
-/// light's share).
-fn march_seen(
-    field: &Field,
-    cameras: &[Camera],
-    min_weight: f32,
-    tag: impl Fn(&crate::camera::Ray) -> u8 + Sync,
-) -> Vec<(u32, u8, f32)> {
+/// The voxels of `field` that `cameras` see and what each paints
+/// ([`Seen`]); a pixel's true label is the first surface it sees in
+/// `truth` ([`demo::strokes::surface_at`]).
+pub fn seen_voxels(field: &Field, truth: &Field, labels: &Labels, cameras: &[Camera], min_weight: f32) -> Seen {
     let geom = field.geom();
     let step = 0.5 * geom.spacing().min_element();
-    let rays: Vec<crate::camera::Ray> = cameras
+    let rows: Vec<(&Camera, u32)> = cameras
         .iter()
-        .flat_map(|c| {
-            let k = c.intrinsics;
-            (0..k.height).flat_map(move |y| (0..k.width).map(move |x| c.pixel_ray(x, y)))
-        })
+        .flat_map(|c| (0..c.intrinsics.height).map(move |y| (c, y)))
         .collect();
-    rays.par_chunks(4096)
-        .flat_map_iter(|chunk| {
+    // (voxel, the pixel's true label, the light's share) of every sample
+    // that takes at least `min_weight` of its pixel's light.
+    let mut records: Vec<(u32, u8, f32)> = rows
+        .par_iter()
+        .flat_map_iter(|&(camera, y)| {
             let mut out = Vec::new();
-            for ray in chunk {
+            for x in 0..camera.intrinsics.width {
+                let ray = camera.pixel_ray(x, y);
                 let Some((t0, t1)) = geom.bounds.intersect(ray.origin, ray.dir) else {
                     continue;
                 };
@@ -573,9 +541,11 @@ fn march_seen(
                     let alpha = 1.0 - (-field.sigma(p) * step).exp();
                     let w = trans * alpha;
                     if w >= min_weight {
-                        if let Some([x, y, z]) = geom.nearest(p) {
-                            let l = *label.get_or_insert_with(|| tag(ray));
-                            out.push((geom.index(x, y, z) as u32, l, w));
+                        if let Some([vx, vy, vz]) = geom.nearest(p) {
+                            let l = *label.get_or_insert_with(|| {
+                                demo::strokes::surface_at(camera, &truth.density, labels, x, y).map_or(0, |(_, l)| l)
+                            });
+                            out.push((geom.index(vx, vy, vz) as u32, l, w));
                         }
                     }
                     trans *= 1.0 - alpha;
@@ -584,44 +554,23 @@ fn march_seen(
             }
             out
         })
-        .collect()
-}
-
-/// The true label of a pixel: of the labelled samples along its ray
-/// through `truth`, the label that takes the most light, if the labels
-/// together take at least half of it (else 0: the pixel shows the empty
-/// background).
-fn pixel_label(truth: &Field, labels: &Labels, ray: &crate::camera::Ray) -> u8 {
-    let geom = truth.geom();
-    let Some((t0, t1)) = geom.bounds.intersect(ray.origin, ray.dir) else {
-        return 0;
+        .collect();
+    records.par_sort_unstable_by_key(|&(v, l, _)| (v, l));
+    let mut seen = Seen {
+        voxels: Bitmap::new(geom.res),
+        painted: vec![0u8; geom.len()],
     };
-    let step = 0.5 * geom.spacing().min_element();
-    // (label, light) of the few objects one ray meets.
-    let mut light: Vec<(u8, f32)> = Vec::new();
-    let mut trans = 1.0f32;
-    let mut t = t0 + 0.5 * step;
-    while t < t1 && trans > 1e-3 {
-        let p = ray.origin + t * ray.dir;
-        let sigma = truth.sigma(p);
-        if sigma > 0.0 {
-            let alpha = 1.0 - (-sigma * step).exp();
-            let l = labels.at(p);
-            if l != 0 {
-                match light.iter_mut().find(|e| e.0 == l) {
-                    Some(e) => e.1 += trans * alpha,
-                    None => light.push((l, trans * alpha)),
-                }
-            }
-            trans *= 1.0 - alpha;
-        }
-        t += step;
+    for group in records.chunk_by(|a, b| a.0 == b.0) {
+        let v = group[0].0 as usize;
+        seen.voxels.set(v, true);
+        // Records are sorted by label within a voxel: sum each run.
+        let best = group
+            .chunk_by(|a, b| a.1 == b.1)
+            .map(|run| (run[0].1, run.iter().map(|r| r.2).sum::<f32>()))
+            .max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)));
+        seen.painted[v] = best.map_or(0, |(l, _)| l);
     }
-    let total: f32 = light.iter().map(|e| e.1).sum();
-    match light.iter().max_by(|a, b| a.1.total_cmp(&b.1)) {
-        Some(&(l, _)) if total >= 0.5 => l,
-        _ => 0,
-    }
+    seen
 }
 
 /// The label of a trained voxel at `p`: the label grid's at its centre or,
@@ -657,24 +606,12 @@ impl Resampled {
 
     /// Voxels of `field` above `floor` that a camera sees, labelled with
     /// their blur ([`label_near`]) and, off every labelled voxel, by what
-    /// they paint (`seen` and `painted`: [`painted_voxels`]).
-    pub fn seen(
-        field: &Field,
-        floor: f32,
-        (seen, painted): (&Bitmap, &[u8]),
-        truth: &Field,
-        labels: &Labels,
-    ) -> Result<Self> {
-        Self::build(field, floor, Some((seen, painted)), truth, labels)
+    /// they paint ([`Seen`]).
+    pub fn seen(field: &Field, floor: f32, seen: &Seen, truth: &Field, labels: &Labels) -> Result<Self> {
+        Self::build(field, floor, Some(seen), truth, labels)
     }
 
-    fn build(
-        field: &Field,
-        floor: f32,
-        seen: Option<(&Bitmap, &[u8])>,
-        truth: &Field,
-        labels: &Labels,
-    ) -> Result<Self> {
+    fn build(field: &Field, floor: f32, seen: Option<&Seen>, truth: &Field, labels: &Labels) -> Result<Self> {
         let geom = field.geom();
         crate::ensure!(
             geom.len() <= u32::MAX as usize,
@@ -683,7 +620,7 @@ impl Resampled {
         );
         let d = &field.density;
         let occupied = Bitmap::from_fn(geom.res, |i| {
-            d.sigma_at(i) > floor && seen.is_none_or(|(s, _)| s.get(i))
+            d.sigma_at(i) > floor && seen.is_none_or(|s| s.voxels.get(i))
         });
         let voxels: Vec<u32> = occupied.ones().map(|i| i as u32).collect();
         let h = geom.spacing();
@@ -692,8 +629,8 @@ impl Resampled {
             .map(|&v| {
                 let p = geom.point_of(v as usize);
                 let label = match seen {
-                    Some((_, painted)) => match label_near(labels, p, h) {
-                        0 => painted[v as usize],
+                    Some(seen) => match label_near(labels, p, h) {
+                        0 => seen.painted[v as usize],
                         l => l,
                     },
                     None => labels.at(p),
@@ -963,8 +900,8 @@ pub fn score_scene(
     let render_scene = Scene::single(field.clone());
     let truth_field = Arc::new(scene.field.clone());
     let floor = visible_floor(field);
-    let (seen, painted) = painted_voxels(field, &scene.field, &scene.labels, seen_from, SEEN_WEIGHT);
-    let resampled = Resampled::seen(field, floor, (&seen, &painted), &scene.field, &scene.labels)?;
+    let seen = seen_voxels(field, &scene.field, &scene.labels, seen_from, SEEN_WEIGHT);
+    let resampled = Resampled::seen(field, floor, &seen, &scene.field, &scene.labels)?;
     let all = Resampled::new(field, floor, &scene.field, &scene.labels)?;
     let boxes = label_boxes(&scene.labels);
     let stroked: Vec<u8> = scene
@@ -1388,7 +1325,7 @@ mod tests {
     fn seen_voxels_are_the_surfaces_the_cameras_look_at() {
         let s = demo::build("tabletop", 64, 0).unwrap();
         let cams = capture_cameras(&s, 6, 4);
-        let seen = seen_voxels(&s.field, &cams, SEEN_WEIGHT);
+        let seen = seen_voxels(&s.field, &s.field, &s.labels, &cams, SEEN_WEIGHT).voxels;
         let floor = visible_floor(&s.field);
         let solid = Bitmap::from_fn(s.field.res(), |i| s.field.density.sigma_at(i) > floor);
         let (n_seen, n_solid) = (seen.count(), solid.count());
@@ -1414,7 +1351,12 @@ mod tests {
             .iter()
             .map(|c| Camera::look_at(c.intrinsics, c.position() * 10.0, c.position() * 20.0, Vec3::Y))
             .collect();
-        assert_eq!(seen_voxels(&s.field, &away, SEEN_WEIGHT).count(), 0);
+        assert_eq!(
+            seen_voxels(&s.field, &s.field, &s.labels, &away, SEEN_WEIGHT)
+                .voxels
+                .count(),
+            0
+        );
     }
 
     /// The highest labelled grid point of `label`.
@@ -1463,18 +1405,21 @@ mod tests {
         assert_eq!(label_near(&s.labels, g.point_of(centre), h), 0);
         let k = s.cameras.frames[0].camera.intrinsics.downscaled(4);
         let above = Camera::look_at(k, top + Vec3::Y * 1.5, top, Vec3::Z);
-        let (seen, painted) = painted_voxels(&hazy, &s.field, &s.labels, &[above], SEEN_WEIGHT);
-        assert!(seen.get(centre));
-        assert_eq!(painted[centre], ball);
+        let seen = seen_voxels(&hazy, &s.field, &s.labels, &[above], SEEN_WEIGHT);
+        assert!(seen.voxels.get(centre));
+        assert_eq!(seen.painted[centre], ball);
         // Looking up and away, nothing is seen.
         let away = Camera::look_at(k, top + Vec3::Y * 1.5, top + Vec3::Y * 3.0, Vec3::Z);
-        let (seen, _) = painted_voxels(&hazy, &s.field, &s.labels, &[away], SEEN_WEIGHT);
-        assert_eq!(seen.count(), 0);
+        let seen = seen_voxels(&hazy, &s.field, &s.labels, &[away], SEEN_WEIGHT);
+        assert_eq!(seen.voxels.count(), 0);
         // The truth's own surfaces paint their own labels.
         let cams = capture_cameras(&s, 6, 4);
-        let (seen, painted) = painted_voxels(&s.field, &s.field, &s.labels, &cams, SEEN_WEIGHT);
-        let labelled: Vec<usize> = seen.ones().filter(|&v| s.labels.data[v] != 0).collect();
-        let agree = labelled.iter().filter(|&&v| painted[v] == s.labels.data[v]).count();
+        let seen = seen_voxels(&s.field, &s.field, &s.labels, &cams, SEEN_WEIGHT);
+        let labelled: Vec<usize> = seen.voxels.ones().filter(|&v| s.labels.data[v] != 0).collect();
+        let agree = labelled
+            .iter()
+            .filter(|&&v| seen.painted[v] == s.labels.data[v])
+            .count();
         assert!(agree * 10 >= labelled.len() * 9, "{agree} of {}", labelled.len());
     }
 
