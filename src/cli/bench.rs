@@ -72,6 +72,11 @@ pub struct QualityArgs {
     /// Teacher crops per axis (`isrf train --teacher-tiles`).
     #[arg(long, default_value_t = 1)]
     pub teacher_tiles: u32,
+    /// The teacher's tensor to distil (`isrf train --teacher-output`; e.g.
+    /// the last block's attention keys,
+    /// `/backbone/encoder/layer.11/attention/attention/key/Add_output_0`).
+    #[arg(long)]
+    pub teacher_output: Option<String>,
     /// σ of the image-guided upsampling of teacher maps (0: bilinear;
     /// default: `isrf train`'s).
     #[arg(long)]
@@ -382,6 +387,7 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         teacher_size: a.teacher_size,
         teacher_shifts: a.teacher_shifts,
         teacher_tiles: a.teacher_tiles,
+        teacher_output: a.teacher_output,
         feature_guide: a.feature_guide,
         feature_res: a.feature_res,
         diagnose: a.diagnose,
