@@ -9,11 +9,13 @@
 //! - [`train`]: trainer throughput per stage and phase.
 //! - [`quality`]: segmentation quality with exact ground truth on fields
 //!   trained from renders of the demo scenes.
+//! - [`separation`]: whether the teacher's own maps part neighbours.
 //! - [`splats`]: splat import speed; one-stroke selection of splats.
 
 pub mod quality;
 pub mod render;
 pub mod segment;
+pub mod separation;
 pub mod splats;
 pub mod strokes;
 pub mod train;

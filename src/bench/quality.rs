@@ -31,6 +31,7 @@
 //! (`…/isrf/quality/`), keyed by everything that shapes them, so a re-run
 //! only segments.
 
+use super::separation::{teacher_separation, Separation};
 use super::Table;
 use crate::camera::{Camera, CameraFrame, CameraSet};
 use crate::data::{Dataset, Image, LoadOptions};
@@ -42,7 +43,7 @@ use crate::field::cache::OCCUPIED_FLOOR;
 use crate::field::{Aabb, Bitmap, Field};
 use crate::render::{render, Probe, RenderOptions, Scene};
 use crate::segment::{region_from_stroke, MaskBuilder, Polarity, SegmentParams};
-use crate::train::{default_cache_dir, default_teacher, preset, Session, TrainConfig};
+use crate::train::{default_cache_dir, default_teacher, preset, FeatureMaps, Session, TrainConfig};
 use crate::train::{DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS};
 use glam::Vec3;
 use rayon::prelude::*;
@@ -357,6 +358,8 @@ pub fn capture_key(cfg: &QualityConfig, scene: &str) -> String {
 /// A field trained on a capture, or read from the cache.
 pub struct Trained {
     pub field: Arc<Field>,
+    /// The teacher's maps of the training views, as distilled.
+    pub maps: FeatureMaps,
     pub meta: TrainedMeta,
     pub from_cache: bool,
     pub teacher: String,
@@ -402,6 +405,7 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
         if let Some((field, meta)) = load_field(fields_dir, &key)? {
             return Ok(Trained {
                 field: Arc::new(field),
+                maps: session.trainer.teacher.take().expect("teacher just attached"),
                 meta,
                 from_cache: true,
                 teacher: report.source,
@@ -467,6 +471,11 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
     let field = Arc::new(Field::load(&path)?);
     Ok(Trained {
         field,
+        maps: session
+            .trainer
+            .teacher
+            .take()
+            .expect("teacher attached for distillation"),
         meta,
         from_cache: false,
         teacher: report.source,
@@ -883,6 +892,10 @@ pub struct SceneRun {
 pub struct QualityReport {
     pub runs: Vec<SceneRun>,
     pub objects: Vec<ObjectRow>,
+    /// With `diagnose`: how far apart the teacher's own maps hold each
+    /// object from its neighbours ([`super::separation`]).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub separation: Vec<SeparationRow>,
     pub min_iou3d: f64,
     pub mean_iou3d: f64,
     pub mean_miou2d: f64,
@@ -1076,6 +1089,50 @@ pub fn stage_lines(r: &QualityReport) -> Vec<String> {
     out
 }
 
+/// One object's [`Separation`], its labels named.
+#[derive(Clone, Debug, Serialize)]
+pub struct SeparationRow {
+    pub scene: String,
+    pub object: String,
+    pub nearest: String,
+    pub separation: Separation,
+}
+
+fn separation_rows(scene: &DemoScene, maps: &FeatureMaps, cameras: &[Camera]) -> Vec<SeparationRow> {
+    let name = |l: u8| match l {
+        0 => "background".to_string(),
+        l => scene.objects[l as usize - 1].name.clone(),
+    };
+    teacher_separation(maps, cameras, &scene.field.density, &scene.labels)
+        .into_iter()
+        .map(|s| SeparationRow {
+            scene: scene.name.clone(),
+            object: name(s.label),
+            nearest: name(s.nearest),
+            separation: s,
+        })
+        .collect()
+}
+
+/// With `diagnose`: one line per object on the teacher's own maps.
+pub fn separation_lines(r: &QualityReport) -> Vec<String> {
+    r.separation
+        .iter()
+        .map(|s| {
+            let v = &s.separation;
+            format!(
+                "  teacher {:>9}: {:>6} cells, spread {:.3}; nearest {} at {:.3}; {:.1} % of its cells nearer another object's mean",
+                s.object,
+                v.cells,
+                v.spread,
+                s.nearest,
+                v.to_nearest,
+                100.0 * v.confused
+            )
+        })
+        .collect()
+}
+
 /// Runs the whole benchmark: per scene capture (cached), field (cached),
 /// segmentation and scores.
 pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
@@ -1087,6 +1144,7 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
     };
     let mut runs = vec![];
     let mut objects = vec![];
+    let mut separation = vec![];
     for name in &cfg.scenes {
         eprintln!("{name}: building the ground truth at {}^3 ...", cfg.demo_res);
         let scene = demo::build(name, cfg.demo_res, cfg.seed)?;
@@ -1116,6 +1174,9 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
                 .held_out_psnr
                 .map_or(String::new(), |p| format!(", held-out PSNR {p:.2} dB"))
         );
+        if cfg.diagnose {
+            separation.extend(separation_rows(&scene, &t.maps, &train));
+        }
         let names: Vec<String> = (0..val.len()).map(|i| format!("val/r_{i:03}")).collect();
         // A quarter of the training views decide which voxels are seen.
         let seen_from: Vec<Camera> = train.iter().step_by(4).cloned().collect();
@@ -1148,7 +1209,10 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
         });
         objects.extend(rows);
     }
-    Ok(summarise(runs, objects))
+    Ok(QualityReport {
+        separation,
+        ..summarise(runs, objects)
+    })
 }
 
 fn summarise(runs: Vec<SceneRun>, objects: Vec<ObjectRow>) -> QualityReport {
@@ -1163,6 +1227,7 @@ fn summarise(runs: Vec<SceneRun>, objects: Vec<ObjectRow>) -> QualityReport {
         nvos_mean_miou: mean(|o| o.nvos_iou),
         preset_iters: p.iters,
         preset_feature_iters: DEFAULT_FEATURE_ITERS,
+        separation: vec![],
         runs,
         objects,
     }

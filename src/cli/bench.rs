@@ -88,7 +88,8 @@ pub struct QualityArgs {
     #[arg(long)]
     pub json: bool,
     /// Also score each stroke's seeds and stable region before the graph
-    /// cut, and name the objects every stage selects wrongly.
+    /// cut, name the objects every stage selects wrongly, and say how far
+    /// apart the teacher's own maps hold each object from its neighbours.
     #[arg(long)]
     pub diagnose: bool,
     /// JSON file with training settings put over the Blender preset (as
@@ -374,7 +375,7 @@ fn run_train(a: TrainArgs) -> Result<()> {
 }
 
 fn run_quality(a: QualityArgs) -> Result<()> {
-    use isrf::bench::quality::{bench_quality, object_table, run_lines, stage_lines, QualityConfig};
+    use isrf::bench::quality::{bench_quality, object_table, run_lines, separation_lines, stage_lines, QualityConfig};
     let mut cfg = QualityConfig {
         demo_res: a.res,
         views: a.views,
@@ -428,7 +429,7 @@ fn run_quality(a: QualityArgs) -> Result<()> {
         cfg.negatives
     );
     print!("{}", object_table(&r));
-    for l in stage_lines(&r) {
+    for l in stage_lines(&r).into_iter().chain(separation_lines(&r)) {
         println!("{l}");
     }
     println!("realistic NVOS mean 2D mIoU: {:.3}", r.nvos_mean_miou);

@@ -1,0 +1,175 @@
+//! Does the teacher itself tell an object from its neighbours?
+//!
+//! `isrf bench quality --diagnose` asks this of the teacher's own maps (the
+//! PCA'd tokens the field is distilled from), before any field, growth or
+//! cut: every map cell of every training view takes the true label of the
+//! first surface its centre pixel sees, and each object's cells are
+//! compared with every label's mean feature. When an object's cells sit as
+//! close to a neighbour's mean as to their own, no segmentation of the
+//! distilled field can part the two from a single stroke: the failure is
+//! the teacher's, not the pipeline's.
+
+use crate::camera::Camera;
+use crate::demo::{self, Labels};
+use crate::field::DensityGrid;
+use crate::train::FeatureMaps;
+use rayon::prelude::*;
+use serde::Serialize;
+
+/// One label's cells against every label's mean (squared L2 distances
+/// between unit-length features, so within 0..=4).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Separation {
+    pub label: u8,
+    pub cells: usize,
+    /// Mean squared distance of the label's cells to their own mean.
+    pub spread: f64,
+    /// The other label whose mean is nearest the label's cells on average.
+    pub nearest: u8,
+    /// Mean squared distance of the label's cells to that label's mean.
+    pub to_nearest: f64,
+    /// Share of the label's cells nearer another label's mean than their own.
+    pub confused: f64,
+}
+
+/// [`Separation`] of every label present in `labels` (one per cell;
+/// `features` holds `channels` values per cell, normalised here). Label 0
+/// (nothing, or the background) takes part as a neighbour, not as a row.
+pub fn separation(labels: &[u8], features: &[f32], channels: usize) -> Vec<Separation> {
+    assert_eq!(features.len(), labels.len() * channels, "one feature vector per label");
+    let unit = |i: usize| {
+        let f = &features[i * channels..(i + 1) * channels];
+        let n = f.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+        f.iter().map(move |v| v / n)
+    };
+    let mut sums = vec![vec![0.0f64; channels]; 256];
+    let mut counts = [0usize; 256];
+    for (i, &l) in labels.iter().enumerate() {
+        counts[l as usize] += 1;
+        for (s, v) in sums[l as usize].iter_mut().zip(unit(i)) {
+            *s += v as f64;
+        }
+    }
+    let present: Vec<u8> = (0..=255u8).filter(|&l| counts[l as usize] > 0).collect();
+    let means: Vec<Vec<f64>> = present
+        .iter()
+        .map(|&l| sums[l as usize].iter().map(|s| s / counts[l as usize] as f64).collect())
+        .collect();
+    // to[a][b]: summed squared distance of label a's cells to label b's mean.
+    let k = present.len();
+    let mut to = vec![vec![0.0f64; k]; k];
+    let mut confused = vec![0usize; k];
+    let slot = |l: u8| present.binary_search(&l).expect("label was counted");
+    for (i, &l) in labels.iter().enumerate() {
+        let a = slot(l);
+        let d: Vec<f64> = means
+            .iter()
+            .map(|m| m.iter().zip(unit(i)).map(|(m, v)| (v as f64 - m).powi(2)).sum())
+            .collect();
+        if d.iter().enumerate().any(|(b, &db)| b != a && db < d[a]) {
+            confused[a] += 1;
+        }
+        for (t, db) in to[a].iter_mut().zip(&d) {
+            *t += db;
+        }
+    }
+    (0..k)
+        .filter(|&a| present[a] != 0)
+        .filter_map(|a| {
+            let n = counts[present[a] as usize] as f64;
+            let (b, dist) = (0..k)
+                .filter(|&b| b != a)
+                .map(|b| (b, to[a][b] / n))
+                .min_by(|x, y| x.1.total_cmp(&y.1))?;
+            Some(Separation {
+                label: present[a],
+                cells: n as usize,
+                spread: to[a][a] / n,
+                nearest: present[b],
+                to_nearest: dist,
+                confused: confused[a] as f64 / n,
+            })
+        })
+        .collect()
+}
+
+/// The true label of every map cell of `maps` (one map per camera of
+/// `cameras`, in order): that of the first surface `truth` shows at the
+/// cell's centre pixel ([`demo::strokes::surface_at`]), 0 where none.
+pub fn cell_labels(maps: &FeatureMaps, cameras: &[Camera], truth: &DensityGrid, labels: &Labels) -> Vec<u8> {
+    maps.maps
+        .par_iter()
+        .zip(cameras)
+        .flat_map_iter(|(m, camera)| {
+            let (sx, sy) = (
+                m.image_width as f32 / m.width as f32,
+                m.image_height as f32 / m.height as f32,
+            );
+            (0..m.height).flat_map(move |y| {
+                (0..m.width).map(move |x| {
+                    let px = (((x as f32 + 0.5) * sx) as u32).min(camera.intrinsics.width - 1);
+                    let py = (((y as f32 + 0.5) * sy) as u32).min(camera.intrinsics.height - 1);
+                    demo::strokes::surface_at(camera, truth, labels, px, py).map_or(0, |(_, l)| l)
+                })
+            })
+        })
+        .collect()
+}
+
+/// [`separation`] of the teacher's maps of the training views `cameras`.
+pub fn teacher_separation(
+    maps: &FeatureMaps,
+    cameras: &[Camera],
+    truth: &DensityGrid,
+    labels: &Labels,
+) -> Vec<Separation> {
+    let cell_label = cell_labels(maps, cameras, truth, labels);
+    let features: Vec<f32> = maps.maps.iter().flat_map(|m| m.data.iter().copied()).collect();
+    separation(&cell_label, &features, maps.channels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn known_answer_for_two_labels_one_half_confused() {
+        // Label 1: two cells at x. Label 2: one cell at y, one at x (its
+        // mean is (0.5, 0.5)). Label 0 is not a row but a neighbour.
+        let labels = [1, 1, 2, 2, 0];
+        let features = [2.0, 0.0, 1.0, 0.0, 0.0, 3.0, 5.0, 0.0, -1.0, 0.0];
+        let s = separation(&labels, &features, 2);
+        assert_eq!(s.len(), 2);
+        assert_eq!((s[0].label, s[0].cells, s[0].nearest), (1, 2, 2));
+        assert!((s[0].spread - 0.0).abs() < 1e-9);
+        // ‖(1,0) − (0.5,0.5)‖² = 0.5; the cells are on label 1's mean.
+        assert!((s[0].to_nearest - 0.5).abs() < 1e-9);
+        assert_eq!(s[0].confused, 0.0);
+        // Label 2: each cell 0.5 from its mean; the x cell sits on label 1's.
+        assert_eq!((s[1].label, s[1].nearest), (2, 1));
+        assert!((s[1].spread - 0.5).abs() < 1e-9);
+        // To (1,0): the y cell at 2, the x cell at 0.
+        assert!((s[1].to_nearest - 1.0).abs() < 1e-9);
+        assert!((s[1].confused - 0.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_demo_shelf_labels_its_objects_in_map_cells() {
+        let scene = demo::build("shelf", 64, 0).unwrap();
+        let cameras: Vec<Camera> = scene.cameras.frames.iter().take(2).map(|f| f.camera).collect();
+        let (w, h) = (cameras[0].intrinsics.width, cameras[0].intrinsics.height);
+        let map = |_| crate::train::teacher::FeatureMap {
+            width: 40,
+            height: 30,
+            image_width: w,
+            image_height: h,
+            data: vec![1.0; 40 * 30],
+        };
+        let maps = FeatureMaps::new(1, (0..2).map(map).collect()).unwrap();
+        let l = cell_labels(&maps, &cameras, &scene.field.density, &scene.labels);
+        assert_eq!(l.len(), 2 * 40 * 30);
+        // The orbit sees the shelf and the background around it.
+        let shelf = scene.objects.iter().find(|o| o.name == "shelf").unwrap().label;
+        assert!(l.contains(&0) && l.contains(&shelf));
+    }
+}
