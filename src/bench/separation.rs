@@ -32,22 +32,25 @@ pub struct Separation {
     pub confused: f64,
 }
 
-/// [`Separation`] of every label present in `labels` (one per cell;
-/// `features` holds `channels` values per cell, normalised here). Label 0
+/// [`Separation`] of every label present in `labels` (one per cell). The
+/// cells' features are `blocks` read one after the other, `channels` values
+/// per cell (the maps' own buffers, not copied), normalised here. Label 0
 /// (nothing, or the background) takes part as a neighbour, not as a row.
-pub fn separation(labels: &[u8], features: &[f32], channels: usize) -> Vec<Separation> {
-    assert_eq!(features.len(), labels.len() * channels, "one feature vector per label");
-    let unit = |i: usize| {
-        let f = &features[i * channels..(i + 1) * channels];
-        let n = f.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
-        f.iter().map(move |v| v / n)
+pub fn separation(labels: &[u8], blocks: &[&[f32]], channels: usize) -> Vec<Separation> {
+    let total: usize = blocks.iter().map(|b| b.len()).sum();
+    assert_eq!(total, labels.len() * channels, "one feature vector per label");
+    let cells = || {
+        blocks.iter().flat_map(|b| b.chunks_exact(channels)).map(|f| {
+            let n = f.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+            f.iter().map(move |v| (v / n) as f64)
+        })
     };
     let mut sums = vec![vec![0.0f64; channels]; 256];
     let mut counts = [0usize; 256];
-    for (i, &l) in labels.iter().enumerate() {
+    for (&l, f) in labels.iter().zip(cells()) {
         counts[l as usize] += 1;
-        for (s, v) in sums[l as usize].iter_mut().zip(unit(i)) {
-            *s += v as f64;
+        for (s, v) in sums[l as usize].iter_mut().zip(f) {
+            *s += v;
         }
     }
     let present: Vec<u8> = (0..=255u8).filter(|&l| counts[l as usize] > 0).collect();
@@ -59,13 +62,15 @@ pub fn separation(labels: &[u8], features: &[f32], channels: usize) -> Vec<Separ
     let k = present.len();
     let mut to = vec![vec![0.0f64; k]; k];
     let mut confused = vec![0usize; k];
-    let slot = |l: u8| present.binary_search(&l).expect("label was counted");
-    for (i, &l) in labels.iter().enumerate() {
-        let a = slot(l);
-        let d: Vec<f64> = means
-            .iter()
-            .map(|m| m.iter().zip(unit(i)).map(|(m, v)| (v as f64 - m).powi(2)).sum())
-            .collect();
+    let mut d = vec![0.0f64; k];
+    for (&l, f) in labels.iter().zip(cells()) {
+        let a = present.binary_search(&l).expect("label was counted");
+        d.fill(0.0);
+        for (c, v) in f.enumerate() {
+            for (db, m) in d.iter_mut().zip(&means) {
+                *db += (v - m[c]).powi(2);
+            }
+        }
         if d.iter().enumerate().any(|(b, &db)| b != a && db < d[a]) {
             confused[a] += 1;
         }
@@ -124,8 +129,8 @@ pub fn teacher_separation(
     labels: &Labels,
 ) -> Vec<Separation> {
     let cell_label = cell_labels(maps, cameras, truth, labels);
-    let features: Vec<f32> = maps.maps.iter().flat_map(|m| m.data.iter().copied()).collect();
-    separation(&cell_label, &features, maps.channels)
+    let blocks: Vec<&[f32]> = maps.maps.iter().map(|m| m.data.as_slice()).collect();
+    separation(&cell_label, &blocks, maps.channels)
 }
 
 #[cfg(test)]
@@ -137,8 +142,9 @@ mod tests {
         // Label 1: two cells at x. Label 2: one cell at y, one at x (its
         // mean is (0.5, 0.5)). Label 0 is not a row but a neighbour.
         let labels = [1, 1, 2, 2, 0];
-        let features = [2.0, 0.0, 1.0, 0.0, 0.0, 3.0, 5.0, 0.0, -1.0, 0.0];
-        let s = separation(&labels, &features, 2);
+        // Two blocks, as two views' maps.
+        let (view_a, view_b) = ([2.0, 0.0, 1.0, 0.0, 0.0, 3.0], [5.0, 0.0, -1.0, 0.0]);
+        let s = separation(&labels, &[&view_a, &view_b], 2);
         assert_eq!(s.len(), 2);
         assert_eq!((s[0].label, s[0].cells, s[0].nearest), (1, 2, 2));
         assert!((s[0].spread - 0.0).abs() < 1e-9);
