@@ -9,7 +9,8 @@
 //! - [`train`]: trainer throughput per stage and phase.
 //! - [`quality`]: segmentation quality with exact ground truth on fields
 //!   trained from renders of the demo scenes.
-//! - [`separation`]: whether the teacher's own maps part neighbours.
+//! - [`separation`]: whether the teacher's own maps, and the field
+//!   distilled from them, part neighbours.
 //! - [`splats`]: splat import speed; one-stroke selection of splats.
 
 pub mod quality;

@@ -31,7 +31,7 @@
 //! (`…/isrf/quality/`), keyed by everything that shapes them, so a re-run
 //! only segments.
 
-use super::separation::{teacher_separation, Separation};
+use super::separation::{field_separation, teacher_separation, Separation};
 use super::Table;
 use crate::camera::{Camera, CameraFrame, CameraSet};
 use crate::data::{Dataset, Image, LoadOptions};
@@ -892,8 +892,9 @@ pub struct SceneRun {
 pub struct QualityReport {
     pub runs: Vec<SceneRun>,
     pub objects: Vec<ObjectRow>,
-    /// With `diagnose`: how far apart the teacher's own maps hold each
-    /// object from its neighbours ([`super::separation`]).
+    /// With `diagnose`: how far apart the teacher's own maps, and the
+    /// field distilled from them, hold each object from its neighbours
+    /// ([`super::separation`]).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub separation: Vec<SeparationRow>,
     pub min_iou3d: f64,
@@ -906,6 +907,14 @@ pub struct QualityReport {
     pub preset_feature_iters: usize,
 }
 
+/// What [`score_scene`] measures of one scene.
+pub struct SceneScore {
+    pub objects: Vec<ObjectRow>,
+    /// With `diagnose`: the distilled field's [`Separation`] of the
+    /// objects, over the voxels the 3D score counts.
+    pub field_separation: Vec<Separation>,
+}
+
 /// Segments and scores every object of one scene on its trained field.
 pub fn score_scene(
     scene: &DemoScene,
@@ -916,7 +925,7 @@ pub fn score_scene(
     negatives: usize,
     params: &SegmentParams,
     diagnose: bool,
-) -> Result<Vec<ObjectRow>> {
+) -> Result<SceneScore> {
     let params = *params;
     let cache = field.feature_cache()?;
     let render_scene = Scene::single(field.clone());
@@ -998,7 +1007,15 @@ pub fn score_scene(
             row.nvos_view = view_names.get(best).cloned().unwrap_or_default();
         }
     }
-    Ok(rows)
+    let field_separation = if diagnose {
+        field_separation(&cache, &resampled.voxels, &resampled.labels)
+    } else {
+        vec![]
+    };
+    Ok(SceneScore {
+        objects: rows,
+        field_separation,
+    })
 }
 
 /// One stroke's selection after each stage: the NNFM seeds joined to the
@@ -1092,20 +1109,23 @@ pub fn stage_lines(r: &QualityReport) -> Vec<String> {
 /// One object's [`Separation`], its labels named.
 #[derive(Clone, Debug, Serialize)]
 pub struct SeparationRow {
+    /// What was asked: `teacher` (its maps) or `field` (the distilled field).
+    pub source: String,
     pub scene: String,
     pub object: String,
     pub nearest: String,
     pub separation: Separation,
 }
 
-fn separation_rows(scene: &DemoScene, maps: &FeatureMaps, cameras: &[Camera]) -> Vec<SeparationRow> {
+fn separation_rows(scene: &DemoScene, source: &str, separation: Vec<Separation>) -> Vec<SeparationRow> {
     let name = |l: u8| match l {
         0 => "background".to_string(),
         l => scene.objects[l as usize - 1].name.clone(),
     };
-    teacher_separation(maps, cameras, &scene.field.density, &scene.labels)
+    separation
         .into_iter()
         .map(|s| SeparationRow {
+            source: source.to_string(),
             scene: scene.name.clone(),
             object: name(s.label),
             nearest: name(s.nearest),
@@ -1114,14 +1134,16 @@ fn separation_rows(scene: &DemoScene, maps: &FeatureMaps, cameras: &[Camera]) ->
         .collect()
 }
 
-/// With `diagnose`: one line per object on the teacher's own maps.
+/// With `diagnose`: one line per object on the teacher's own maps, then
+/// one per object on the distilled field.
 pub fn separation_lines(r: &QualityReport) -> Vec<String> {
     r.separation
         .iter()
         .map(|s| {
             let v = &s.separation;
             format!(
-                "  teacher {:>9}: {:>6} cells, spread {:.3}; nearest {} at {:.3}; {:.1} % of its cells nearer another object's mean",
+                "  {:<7} {:>9}: {:>6} cells, spread {:.3}; nearest {} at {:.3}; {:.1} % of its cells nearer another object's mean",
+                s.source,
                 s.object,
                 v.cells,
                 v.spread,
@@ -1145,6 +1167,7 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
     let mut runs = vec![];
     let mut objects = vec![];
     let mut separation = vec![];
+    let mut distilled = vec![];
     for name in &cfg.scenes {
         eprintln!("{name}: building the ground truth at {}^3 ...", cfg.demo_res);
         let scene = demo::build(name, cfg.demo_res, cfg.seed)?;
@@ -1175,12 +1198,13 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
                 .map_or(String::new(), |p| format!(", held-out PSNR {p:.2} dB"))
         );
         if cfg.diagnose {
-            separation.extend(separation_rows(&scene, &t.maps, &train));
+            let maps = teacher_separation(&t.maps, &train, &scene.field.density, &scene.labels);
+            separation.extend(separation_rows(&scene, "teacher", maps));
         }
         let names: Vec<String> = (0..val.len()).map(|i| format!("val/r_{i:03}")).collect();
         // A quarter of the training views decide which voxels are seen.
         let seen_from: Vec<Camera> = train.iter().step_by(4).cloned().collect();
-        let rows = score_scene(
+        let score = score_scene(
             &scene,
             &t.field,
             &val,
@@ -1207,8 +1231,10 @@ pub fn bench_quality(cfg: &QualityConfig) -> Result<QualityReport> {
             capture: dir,
             field: t.path,
         });
-        objects.extend(rows);
+        objects.extend(score.objects);
+        distilled.extend(separation_rows(&scene, "field", score.field_separation));
     }
+    separation.extend(distilled);
     Ok(QualityReport {
         separation,
         ..summarise(runs, objects)

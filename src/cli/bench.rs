@@ -89,7 +89,8 @@ pub struct QualityArgs {
     pub json: bool,
     /// Also score each stroke's seeds and stable region before the graph
     /// cut, name the objects every stage selects wrongly, and say how far
-    /// apart the teacher's own maps hold each object from its neighbours.
+    /// apart the teacher's own maps, and the field distilled from them,
+    /// hold each object from its neighbours.
     #[arg(long)]
     pub diagnose: bool,
     /// JSON file with training settings put over the Blender preset (as
