@@ -1110,14 +1110,14 @@ pub fn stage_lines(r: &QualityReport) -> Vec<String> {
 #[derive(Clone, Debug, Serialize)]
 pub struct SeparationRow {
     /// What was asked: `teacher` (its maps) or `field` (the distilled field).
-    pub source: String,
+    pub source: &'static str,
     pub scene: String,
     pub object: String,
     pub nearest: String,
     pub separation: Separation,
 }
 
-fn separation_rows(scene: &DemoScene, source: &str, separation: Vec<Separation>) -> Vec<SeparationRow> {
+fn separation_rows(scene: &DemoScene, source: &'static str, separation: Vec<Separation>) -> Vec<SeparationRow> {
     let name = |l: u8| match l {
         0 => "background".to_string(),
         l => scene.objects[l as usize - 1].name.clone(),
@@ -1125,7 +1125,7 @@ fn separation_rows(scene: &DemoScene, source: &str, separation: Vec<Separation>)
     separation
         .into_iter()
         .map(|s| SeparationRow {
-            source: source.to_string(),
+            source,
             scene: scene.name.clone(),
             object: name(s.label),
             nearest: name(s.nearest),

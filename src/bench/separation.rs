@@ -4,12 +4,13 @@
 //! PCA'd tokens the field is distilled from), before any field, growth or
 //! cut: every map cell of every training view takes the true label of the
 //! first surface its centre pixel sees, and each object's cells are
-//! compared with every label's mean feature. When an object's cells sit as
-//! close to a neighbour's mean as to their own, no segmentation of the
-//! distilled field can part the two from a single stroke: the failure is
-//! the teacher's, not the pipeline's. The same question asked of the
-//! distilled field ([`field_separation`]: every seen voxel with its true
-//! label) tells whether the distillation keeps what the maps part.
+//! compared with every label's mean feature. The same question asked of
+//! the distilled field ([`field_separation`]: every seen voxel with its
+//! true label) often has a better answer, since a voxel's feature averages
+//! many views: on the realistic shelf the maps put 31 % of the excavator's
+//! cells nearer the jar's mean, the field 7 % of its voxels. When the
+//! field parts two objects and a stroke's selection does not, the failure
+//! is the segmentation's, not the teacher's.
 
 use crate::camera::Camera;
 use crate::demo::{self, Labels};
@@ -137,18 +138,16 @@ pub fn teacher_separation(
 
 /// [`separation`] of a distilled field's features: `voxels` (grid
 /// indices) with their true `labels`, those without features left out.
-/// The rows are copied once into one buffer (tens of thousands of seen
-/// voxels on the benchmark's fields, a few MB).
+/// The cache's rows are read in place, one block per voxel.
 pub fn field_separation(cache: &FeatureCache, voxels: &[u32], labels: &[u8]) -> Vec<Separation> {
-    let rows: Vec<(u8, usize)> = voxels
+    let (kept, rows): (Vec<u8>, Vec<&[f32]>) = voxels
         .iter()
         .zip(labels)
         .filter_map(|(&v, &l)| cache.index.slot(v as usize).map(|r| (l, r)))
         .filter(|&(_, r)| cache.inv_norm[r] > 0.0)
-        .collect();
-    let kept: Vec<u8> = rows.iter().map(|&(l, _)| l).collect();
-    let feats: Vec<f32> = rows.iter().flat_map(|&(_, r)| cache.row(r).iter().copied()).collect();
-    separation(&kept, &[&feats], cache.channels)
+        .map(|(l, r)| (l, cache.row(r)))
+        .unzip();
+    separation(&kept, &rows, cache.channels)
 }
 
 #[cfg(test)]
