@@ -19,6 +19,7 @@ pub mod peel;
 pub mod plane;
 pub mod stable;
 pub mod stroke;
+pub mod supports;
 
 pub use grow::{grow_step_dense, Bound, GrowParams, Grower, GrowthRule};
 pub use kmeans::{kmeans, Centroids};
@@ -473,6 +474,7 @@ fn segment_anchored(
             }
             _ => region,
         };
+        let region = with_legs(cache, floor, region);
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
         return Ok((region, dist));
@@ -669,6 +671,16 @@ fn along_surface(
             let near = |r: usize| dist.get(cache, r) <= material::FARTHEST;
             material::grow_in_material(cache, &region, opaque, |c| same.shows(c), near)
         }
+    }
+}
+
+/// `region` with the legs that hold it up when it is flat (a table top:
+/// [`supports`]), through solid voxels (σ above `floor`).
+fn with_legs(cache: &FeatureCache, floor: f32, region: Bitmap) -> Bitmap {
+    let voxels: Vec<u32> = region.ones().map(|v| v as u32).collect();
+    match plane::flat_slab(&cache.geom, &voxels) {
+        Some(slab) => supports::with_supports(&cache.geom, &cache.solid(floor), region, &slab),
+        None => region,
     }
 }
 
@@ -887,10 +899,29 @@ impl MaskBuilder {
                 if !cuts || !self.cut_out(cache, field, &s, p, &mut t.cut)? {
                     self.subtract_competing(cache, &s.region, s.dist.centres().clone(), p)?;
                 }
+                if p.grow.rule == GrowthRule::Stable {
+                    self.keep_legs(cache, &s.region, p)?;
+                }
                 t.cut_ms += ms_since(t0);
             }
         }
         Ok(t)
+    }
+
+    /// The legs of a flat mask ([`with_legs`]) that a negative stroke's cut
+    /// took off: the cut labels by features, and a table's legs look
+    /// nothing like its top. What that stroke's own region or an earlier
+    /// negative stroke touched stays out.
+    fn keep_legs(&mut self, cache: &FeatureCache, negative: &Bitmap, p: &SegmentParams) -> Result<()> {
+        if !self.mask.any() {
+            return Ok(());
+        }
+        let mut legs = with_legs(cache, p.sigma_floor(cache.voxel_size), self.mask.clone());
+        legs.subtract(negative)?;
+        for &v in &self.negatives.touched {
+            legs.set(v as usize, false);
+        }
+        self.mask.union_with(&legs)
     }
 
     /// The object's model: the positive strokes' centres, or (for a mask
