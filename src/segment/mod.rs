@@ -4,6 +4,7 @@
 //! difference (negative) with the object's 3D bitmap.
 
 pub mod anchor;
+pub mod beside;
 pub mod bitmap_file;
 pub mod cut;
 pub mod dense;
@@ -474,7 +475,7 @@ fn segment_anchored(
             }
             _ => region,
         };
-        let region = with_legs(cache, floor, region);
+        let region = by_structure(cache, floor, region, anchors);
         t.cut_ms = ms_since(t0);
         t.region_voxels = region.count();
         return Ok((region, dist));
@@ -677,9 +678,24 @@ fn along_surface(
 /// `region` with the legs that hold it up when it is flat (a table top:
 /// [`supports`]), through solid voxels (σ above `floor`).
 fn with_legs(cache: &FeatureCache, floor: f32, region: Bitmap) -> Bitmap {
+    by_structure(cache, floor, region, &[])
+}
+
+/// What the region's shape says about its object: a flat region gains the
+/// legs that hold it up ([`supports`]); any other region, drawn on by a
+/// stroke (`anchors`, the voxels under it), loses what stands beside it on
+/// its support ([`beside`]). (A flat region stands beside nothing: a
+/// floor's patches would otherwise count as things standing on the
+/// field's solid under it.)
+fn by_structure(cache: &FeatureCache, floor: f32, region: Bitmap, anchors: &[u32]) -> Bitmap {
     let voxels: Vec<u32> = region.ones().map(|v| v as u32).collect();
+    let solid = || cache.solid(floor);
     match plane::flat_slab(&cache.geom, &voxels) {
-        Some(slab) => supports::with_supports(&cache.geom, &cache.solid(floor), region, &slab),
+        Some(slab) => supports::with_supports(&cache.geom, &solid(), region, &slab),
+        None if !anchors.is_empty() => {
+            let stroked = anchor::near_anchors(&region, anchors, anchor::radius(cache));
+            beside::without_neighbours(&cache.geom, &solid(), region, &stroked)
+        }
         None => region,
     }
 }

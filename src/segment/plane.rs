@@ -72,6 +72,30 @@ pub fn flat_slab(geom: &GridGeom, voxels: &[u32]) -> Option<Slab> {
     flat.then(|| slab(&second))
 }
 
+/// The least-squares slab of `voxels` and whether it is thin against its
+/// spread along the plane ([`FLAT_RATIO`]), with no least size: the
+/// ground under a small object ([`super::beside`]) is a few voxels wide.
+pub fn thin_slab(geom: &GridGeom, voxels: &[u32]) -> Option<Slab> {
+    let h = geom.spacing().min_element();
+    let f = fit(voxels.iter().map(|&v| geom.point_of(v as usize)))?;
+    (f.thickness <= FLAT_RATIO * f.spread).then(|| Slab {
+        centre: f.centre,
+        normal: f.normal,
+        half_width: (HALF_WIDTH_SIGMAS * f.thickness).max(MIN_HALF_WIDTH * h),
+    })
+}
+
+/// Two unit axes spanning the plane of `normal`, as near the grid's axes
+/// as it allows: a plane across a grid axis gets the other two, so that
+/// squares of a voxel's side in it ([`super::supports`],
+/// [`super::beside`]) fall on the voxels' own columns.
+pub fn in_plane_axes(normal: Vec3) -> [Vec3; 2] {
+    let across = normal.abs().max_position();
+    let a = Vec3::AXES[(across + 1) % 3];
+    let a = (a - a.dot(normal) * normal).normalize_or(normal.any_orthonormal_vector());
+    [a, normal.cross(a)]
+}
+
 /// A least-squares plane: its centre, unit normal, and the standard
 /// deviations of the points across it and along its narrower in-plane axis.
 struct Fit {

@@ -74,9 +74,7 @@ struct Outline {
 
 impl Outline {
     fn of(geom: &GridGeom, region: &Bitmap, slab: &Slab) -> Self {
-        let n = slab.normal;
-        let a = n.any_orthonormal_vector();
-        let axes = [a, n.cross(a)];
+        let axes = super::plane::in_plane_axes(slab.normal);
         let h = geom.spacing().min_element();
         let cell_of = |p: Vec3| {
             let d = p - slab.centre;
