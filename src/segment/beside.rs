@@ -58,28 +58,15 @@ pub fn without_neighbours(geom: &GridGeom, solid: &Bitmap, region: Bitmap, strok
     let mut out = region.clone();
     for (id, resting) in footprints.iter().enumerate() {
         let column = column(geom, &region, resting, &cells, &map, id);
-        let own = |v: &u32| {
-            map.get(&cells.of(geom.point_of(*v as usize)))
-                .is_some_and(|&(d, _)| d == 0)
-        };
-        if column
-            .iter()
-            .filter(|v| own(v))
-            .any(|v| stroked.binary_search(v).is_ok())
-        {
+        let part = standing_part(geom, &region, &column, |v| {
+            map.get(&cells.of(geom.point_of(v))).is_some_and(|&(d, _)| d == 0)
+        });
+        if part.iter().any(|v| stroked.binary_search(v).is_ok()) {
             continue;
         }
-        let neck = NECK * (column.len() as f32).powf(2.0 / 3.0);
-        if (faces_to_rest(geom, &region, &column) as f32) >= neck {
-            continue;
-        }
-        // The column's margin past its footprint goes only where it meets
-        // nothing else of the region (a jar's lid, not the end of the
-        // excavator's bucket or body next to it).
-        let in_column = |n: usize| column.binary_search(&(n as u32)).is_ok();
-        for &v in &column {
-            let meets_rest = || super::flood::face_neighbours(geom, v as usize).any(|n| region.get(n) && !in_column(n));
-            if own(&v) || !meets_rest() {
+        let neck = NECK * (part.len() as f32).powf(2.0 / 3.0);
+        if (faces_to_rest(geom, &region, &part) as f32) < neck {
+            for &v in &part {
                 out.set(v as usize, false);
             }
         }
@@ -268,6 +255,20 @@ fn column(
     }
     out.sort_unstable();
     out
+}
+
+/// What of `column` (ascending) stands on its footprint: its voxels over
+/// the footprint's own cells (`own`), and those over the margin that meet
+/// nothing else of the region (a jar's lid, not the end of the
+/// excavator's bucket or body next to the jar).
+fn standing_part(geom: &GridGeom, region: &Bitmap, column: &[u32], own: impl Fn(usize) -> bool) -> Vec<u32> {
+    let in_column = |n: usize| column.binary_search(&(n as u32)).is_ok();
+    let meets_rest = |v: usize| super::flood::face_neighbours(geom, v).any(|n| region.get(n) && !in_column(n));
+    column
+        .iter()
+        .copied()
+        .filter(|&v| own(v as usize) || !meets_rest(v as usize))
+        .collect()
 }
 
 /// Faces between `column` (ascending) and the rest of `region`.
