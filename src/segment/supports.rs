@@ -50,9 +50,16 @@ const BEYOND: f32 = 1.5;
 /// (`slab`, its plane); `solid` marks the voxels that can be legs.
 pub fn with_supports(geom: &GridGeom, solid: &Bitmap, region: Bitmap, slab: &Slab) -> Bitmap {
     let outline = Outline::of(geom, &region, slab);
+    let ground = Ground {
+        geom,
+        solid,
+        region: &region,
+        slab,
+        outline: &outline,
+    };
     let legs = [1.0f32, -1.0]
         .into_iter()
-        .find_map(|side| Walk::new(geom, solid, &region, slab, &outline, side).legs());
+        .find_map(|side| Walk::new(ground, side).legs());
     let mut out = region;
     for v in legs.into_iter().flatten() {
         out.set(v as usize, true);
@@ -120,37 +127,34 @@ impl Outline {
     }
 }
 
-/// The walk away from one side of the slab (module docs).
-struct Walk<'a> {
+/// What a walk looks at: the grid, the voxels that can be legs, the region
+/// and its slab and outline.
+#[derive(Clone, Copy)]
+struct Ground<'a> {
     geom: &'a GridGeom,
     solid: &'a Bitmap,
     region: &'a Bitmap,
     slab: &'a Slab,
     outline: &'a Outline,
+}
+
+/// The walk away from one side of the slab (module docs).
+struct Walk<'a> {
+    ground: Ground<'a>,
     side: f32,
-    /// Voxels waiting per layer (index: layer − `first`).
+    /// Voxels waiting per layer (index: the layer).
     pending: Vec<Vec<u32>>,
     reached: Bitmap,
 }
 
 impl<'a> Walk<'a> {
-    fn new(
-        geom: &'a GridGeom,
-        solid: &'a Bitmap,
-        region: &'a Bitmap,
-        slab: &'a Slab,
-        outline: &'a Outline,
-        side: f32,
-    ) -> Self {
+    fn new(ground: Ground<'a>, side: f32) -> Self {
+        let region = ground.region;
         let mut w = Walk {
-            geom,
-            solid,
-            region,
-            slab,
-            outline,
+            ground,
             side,
             pending: vec![],
-            reached: Bitmap::new(geom.res),
+            reached: Bitmap::new(ground.geom.res),
         };
         for v in region.ones() {
             w.push_neighbours(v, 0);
@@ -160,20 +164,20 @@ impl<'a> Walk<'a> {
 
     /// How many voxels from the slab's mid-plane `v` lies, if on this side.
     fn layer(&self, v: usize) -> Option<usize> {
-        let s = (self.geom.point_of(v) - self.slab.centre).dot(self.slab.normal) * self.side;
-        (s > 0.0).then(|| (s / self.outline.h).round() as usize)
+        let s = (self.ground.geom.point_of(v) - self.ground.slab.centre).dot(self.ground.slab.normal) * self.side;
+        (s > 0.0).then(|| (s / self.ground.outline.h).round() as usize)
     }
 
     /// Queues the solid neighbours of `v` outside the region, inside the
     /// outline, at layer `from` or farther.
     fn push_neighbours(&mut self, v: usize, from: usize) {
         let mut found = vec![];
-        self.geom.neighbours26(v, |n| {
-            if self.reached.get(n) || self.region.get(n) || !self.solid.get(n) {
+        self.ground.geom.neighbours26(v, |n| {
+            if self.reached.get(n) || self.ground.region.get(n) || !self.ground.solid.get(n) {
                 return;
             }
             if let Some(l) = self.layer(n).filter(|&l| l >= from) {
-                if self.outline.holds(self.geom.point_of(n)) {
+                if self.ground.outline.holds(self.ground.geom.point_of(n)) {
                     found.push((n, l));
                 }
             }
@@ -193,13 +197,17 @@ impl<'a> Walk<'a> {
         while let Some(v) = self.pending.get_mut(l).and_then(|p| p.pop()) {
             layer.push(v);
             let mut same = vec![];
-            self.geom.neighbours26(v as usize, |n| {
-                if !self.reached.get(n) && !self.region.get(n) && self.solid.get(n) && self.layer(n) == Some(l) {
+            self.ground.geom.neighbours26(v as usize, |n| {
+                if !self.reached.get(n)
+                    && !self.ground.region.get(n)
+                    && self.ground.solid.get(n)
+                    && self.layer(n) == Some(l)
+                {
                     same.push(n);
                 }
             });
             for n in same {
-                if self.outline.holds(self.geom.point_of(n)) {
+                if self.ground.outline.holds(self.ground.geom.point_of(n)) {
                     self.reached.set(n, true);
                     self.pending[l].push(n as u32);
                 }
@@ -223,7 +231,7 @@ impl<'a> Walk<'a> {
                 continue;
             }
             let full = layer.len();
-            if full as f32 >= SUPPORT_SHARE * self.outline.count as f32 {
+            if full as f32 >= SUPPORT_SHARE * self.ground.outline.count as f32 {
                 return self.standing_on(&layer, layers);
             }
             if columns.is_none() && layers.len() >= MIN_LAYERS {
@@ -237,8 +245,9 @@ impl<'a> Walk<'a> {
                 Some(cells) => layer
                     .into_iter()
                     .filter(|&v| {
-                        self.outline
-                            .cell(self.geom.point_of(v as usize))
+                        self.ground
+                            .outline
+                            .cell(self.ground.geom.point_of(v as usize))
                             .is_some_and(|c| cells[c])
                     })
                     .collect(),
@@ -260,7 +269,7 @@ impl<'a> Walk<'a> {
     fn standing_on(&self, support: &[u32], mut layers: Vec<(usize, Vec<u32>)>) -> Option<Vec<u32>> {
         while layers
             .last()
-            .is_some_and(|&(full, _)| full as f32 >= BLUR_SHARE * self.outline.count as f32)
+            .is_some_and(|&(full, _)| full as f32 >= BLUR_SHARE * self.ground.outline.count as f32)
         {
             layers.pop();
         }
@@ -270,10 +279,10 @@ impl<'a> Walk<'a> {
 
     /// The outline cells under `voxels`, one cell wider all round.
     fn columns(&self, voxels: &[u32]) -> Vec<bool> {
-        let o = self.outline;
+        let o = self.ground.outline;
         let mut cells = vec![false; o.cells.len()];
         for &v in voxels {
-            let Some(c) = o.cell(self.geom.point_of(v as usize)) else {
+            let Some(c) = o.cell(self.ground.geom.point_of(v as usize)) else {
                 continue;
             };
             let (x, y) = ((c % o.size[0]) as i32, (c / o.size[0]) as i32);
@@ -294,7 +303,7 @@ impl<'a> Walk<'a> {
             return false;
         };
         let goal = (BEYOND * layer.len() as f32).ceil() as usize;
-        let mut seen = Bitmap::from_ones(self.geom.res, &{
+        let mut seen = Bitmap::from_ones(self.ground.geom.res, &{
             let mut s = layer.to_vec();
             s.sort_unstable();
             s
@@ -303,8 +312,8 @@ impl<'a> Walk<'a> {
         let mut count = layer.len();
         while let Some(v) = stack.pop() {
             let mut next = vec![];
-            self.geom.neighbours26(v, |n| {
-                if !seen.get(n) && self.solid.get(n) && !self.region.get(n) && self.layer(n) == Some(l) {
+            self.ground.geom.neighbours26(v, |n| {
+                if !seen.get(n) && self.ground.solid.get(n) && !self.ground.region.get(n) && self.layer(n) == Some(l) {
                     next.push(n);
                 }
             });
