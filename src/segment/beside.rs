@@ -54,12 +54,16 @@ pub fn without_neighbours(geom: &GridGeom, solid: &Bitmap, region: Bitmap, strok
     }
     let cells = Cells::new(geom, &slab);
     let footprints = footprints(geom, &region, &contact, &slab, &cells);
-    let map = footprint_map(&footprints, &cells, geom);
+    // One footprint is the object's own foot: nothing stands beside it.
+    if footprints.len() < 2 {
+        return region;
+    }
+    let map = FootprintMap::new(&footprints, &cells, geom);
     let mut out = region.clone();
     for (id, resting) in footprints.iter().enumerate() {
         let column = column(geom, &region, resting, &cells, &map, id);
         let part = standing_part(geom, &region, &column, |v| {
-            map.get(&cells.of(geom.point_of(v))).is_some_and(|&(d, _)| d == 0)
+            map.get(cells.of(geom.point_of(v))).is_some_and(|(d, _)| d == 0)
         });
         if part.iter().any(|v| stroked.binary_search(v).is_ok()) {
             continue;
@@ -76,6 +80,8 @@ pub fn without_neighbours(geom: &GridGeom, solid: &Bitmap, region: Bitmap, strok
 
 /// Tries of the plane search ([`support`]).
 const TRIES: usize = 256;
+/// Points a try's consensus is counted on ([`support`]).
+const SAMPLE: usize = 2048;
 /// The support must hold this share of the contact voxels.
 const SUPPORT_SHARE: f32 = 0.3;
 
@@ -92,20 +98,27 @@ fn support(geom: &GridGeom, contact: &[u32]) -> Option<Slab> {
     let h = geom.spacing().min_element();
     let points: Vec<Vec3> = contact.iter().map(|&v| geom.point_of(v as usize)).collect();
     let mut rng = crate::util::SplitMix64::new(0x5099_0127);
+    // Each try counts its consensus on at most SAMPLE points (a region of a
+    // whole model touches tens of thousands of haze voxels: 256 tries over
+    // all of them cost lego's stroke 45 ms).
+    let sample: Vec<Vec3> = match points.len() > SAMPLE {
+        true => (0..SAMPLE).map(|_| points[rng.below(points.len())]).collect(),
+        false => points.clone(),
+    };
     let mut best: (usize, Vec3, Vec3) = (0, Vec3::ZERO, Vec3::Y);
     for _ in 0..TRIES {
-        let [a, b, c] = [0; 3].map(|_| points[rng.below(points.len())]);
+        let [a, b, c] = [0; 3].map(|_| sample[rng.below(sample.len())]);
         let normal = (b - a).cross(c - a).normalize_or_zero();
         if normal == Vec3::ZERO {
             continue;
         }
-        let near = points.iter().filter(|&&p| (p - a).dot(normal).abs() <= 1.5 * h).count();
+        let near = sample.iter().filter(|&&p| (p - a).dot(normal).abs() <= 1.5 * h).count();
         if near > best.0 {
             best = (near, a, normal);
         }
     }
     let (near, at, normal) = best;
-    if (near as f32) < SUPPORT_SHARE * contact.len() as f32 {
+    if (near as f32) < SUPPORT_SHARE * sample.len() as f32 {
         return None;
     }
     let inliers: Vec<u32> = contact
@@ -171,7 +184,11 @@ impl Cells {
 /// contact voxel inside the slab), grouped by footprint: cells connected
 /// in the plane (8-neighbours).
 fn footprints(geom: &GridGeom, region: &Bitmap, contact: &[u32], slab: &Slab, cells: &Cells) -> Vec<Vec<u32>> {
-    let on_support = |n: usize| contact.binary_search(&(n as u32)).is_ok() && slab.holds(geom.point_of(n));
+    let mut ground = Bitmap::new(geom.res);
+    for &v in contact.iter().filter(|&&v| slab.holds(geom.point_of(v as usize))) {
+        ground.set(v as usize, true);
+    }
+    let on_support = |n: usize| ground.get(n);
     let resting: Vec<u32> = region
         .ones()
         .filter(|&v| super::flood::face_neighbours(geom, v).any(on_support))
@@ -204,24 +221,58 @@ fn footprints(geom: &GridGeom, region: &Bitmap, contact: &[u32], slab: &Slab, ce
 /// Which footprint each cell belongs to, and how far from it (in cells):
 /// a footprint's own cells (0), and those within [`WIDER_BY`] cells of it
 /// that are no other footprint's (the nearest footprint's when several
-/// reach them).
-fn footprint_map(footprints: &[Vec<u32>], cells: &Cells, geom: &GridGeom) -> HashMap<[i32; 2], (i32, usize)> {
-    let mut map: HashMap<[i32; 2], (i32, usize)> = HashMap::new();
-    for (id, f) in footprints.iter().enumerate() {
-        for &v in f {
-            let [x, y] = cells.of(geom.point_of(v as usize));
-            for dy in -WIDER_BY..=WIDER_BY {
-                for dx in -WIDER_BY..=WIDER_BY {
-                    let d = dx.abs().max(dy.abs());
-                    let e = map.entry([x + dx, y + dy]).or_insert((d, id));
-                    if d < e.0 {
-                        *e = (d, id);
+/// reach them). A dense raster over the footprints' box: the column floods
+/// look a cell up for every neighbour they try.
+struct FootprintMap {
+    min: [i32; 2],
+    size: [usize; 2],
+    /// (distance, footprint) per cell; distance `i32::MAX` where none.
+    cells: Vec<(i32, u32)>,
+}
+
+impl FootprintMap {
+    fn new(footprints: &[Vec<u32>], cells: &Cells, geom: &GridGeom) -> Self {
+        let feet: Vec<Vec<[i32; 2]>> = footprints
+            .iter()
+            .map(|f| f.iter().map(|&v| cells.of(geom.point_of(v as usize))).collect())
+            .collect();
+        let all = || feet.iter().flatten();
+        let lo = |k: usize| all().map(|c| c[k]).min().unwrap_or(0) - WIDER_BY;
+        let hi = |k: usize| all().map(|c| c[k]).max().unwrap_or(0) + WIDER_BY;
+        let min = [lo(0), lo(1)];
+        let size = [(hi(0) - min[0] + 1) as usize, (hi(1) - min[1] + 1) as usize];
+        let mut map = FootprintMap {
+            min,
+            size,
+            cells: vec![(i32::MAX, 0); size[0] * size[1]],
+        };
+        for (id, foot) in feet.iter().enumerate() {
+            for &[x, y] in foot {
+                for dy in -WIDER_BY..=WIDER_BY {
+                    for dx in -WIDER_BY..=WIDER_BY {
+                        let d = dx.abs().max(dy.abs());
+                        let i = map.index([x + dx, y + dy]).expect("inside the box");
+                        if d < map.cells[i].0 {
+                            map.cells[i] = (d, id as u32);
+                        }
                     }
                 }
             }
         }
+        map
     }
-    map
+
+    fn index(&self, [x, y]: [i32; 2]) -> Option<usize> {
+        let (x, y) = (x - self.min[0], y - self.min[1]);
+        let inside = x >= 0 && y >= 0 && (x as usize) < self.size[0] && (y as usize) < self.size[1];
+        inside.then(|| y as usize * self.size[0] + x as usize)
+    }
+
+    /// The footprint a cell belongs to and its distance from it.
+    fn get(&self, cell: [i32; 2]) -> Option<(i32, usize)> {
+        let (d, id) = self.cells[self.index(cell)?];
+        (d != i32::MAX).then_some((d, id as usize))
+    }
 }
 
 /// A column reaches this many cells past its footprint: what stands on the
@@ -230,14 +281,7 @@ const WIDER_BY: i32 = 1;
 
 /// The region's voxels over footprint `id`'s cells joined (26-neighbours,
 /// inside those cells) to its resting voxels `resting`: its column.
-fn column(
-    geom: &GridGeom,
-    region: &Bitmap,
-    resting: &[u32],
-    cells: &Cells,
-    map: &HashMap<[i32; 2], (i32, usize)>,
-    id: usize,
-) -> Vec<u32> {
+fn column(geom: &GridGeom, region: &Bitmap, resting: &[u32], cells: &Cells, map: &FootprintMap, id: usize) -> Vec<u32> {
     let mut taken = Bitmap::new(geom.res);
     let mut stack: Vec<usize> = resting.iter().map(|&v| v as usize).collect();
     for &v in &stack {
@@ -246,7 +290,7 @@ fn column(
     let mut out: Vec<u32> = resting.to_vec();
     while let Some(v) = stack.pop() {
         geom.neighbours26(v, |n| {
-            if region.get(n) && !taken.get(n) && map.get(&cells.of(geom.point_of(n))).is_some_and(|&(_, f)| f == id) {
+            if region.get(n) && !taken.get(n) && map.get(cells.of(geom.point_of(n))).is_some_and(|(_, f)| f == id) {
                 taken.set(n, true);
                 out.push(n as u32);
                 stack.push(n);
