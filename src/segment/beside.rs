@@ -31,7 +31,7 @@
 //! neighbour too: a column the stroke crosses always stays, and another
 //! stroke brings such a part back.
 
-use super::plane::{self, Slab};
+use super::plane::{self, PlaneCells as Cells, Slab};
 use crate::field::{Bitmap, GridGeom};
 use glam::Vec3;
 use std::collections::HashMap;
@@ -130,7 +130,7 @@ fn support(geom: &GridGeom, contact: &[u32]) -> Option<Slab> {
     plane::thin_slab(geom, &inliers)
 }
 
-/// Solid voxels outside `region` sharing a face with it, ascending.
+/// Solid voxels outside `region` sharing a face with it.
 fn touching(geom: &GridGeom, solid: &Bitmap, region: &Bitmap) -> Vec<u32> {
     let mut seen = Bitmap::new(geom.res);
     let mut out = vec![];
@@ -142,7 +142,6 @@ fn touching(geom: &GridGeom, solid: &Bitmap, region: &Bitmap) -> Vec<u32> {
             }
         }
     }
-    out.sort_unstable();
     out
 }
 
@@ -154,30 +153,6 @@ fn stands_on(geom: &GridGeom, region: &Bitmap, slab: &Slab) -> bool {
         .ones()
         .fold((Vec3::ZERO, 0usize), |(s, n), v| (s + geom.point_of(v), n + 1));
     n > 0 && (sum / n as f32 - slab.centre).dot(slab.normal).abs() > slab.half_width
-}
-
-/// Voxel-sized squares in the slab's plane.
-struct Cells {
-    origin: Vec3,
-    axes: [Vec3; 2],
-    h: f32,
-}
-
-impl Cells {
-    fn new(geom: &GridGeom, slab: &Slab) -> Self {
-        Cells {
-            origin: slab.centre,
-            axes: plane::in_plane_axes(slab.normal),
-            h: geom.spacing().min_element(),
-        }
-    }
-    fn of(&self, p: Vec3) -> [i32; 2] {
-        let d = p - self.origin;
-        [
-            (d.dot(self.axes[0]) / self.h).floor() as i32,
-            (d.dot(self.axes[1]) / self.h).floor() as i32,
-        ]
-    }
 }
 
 /// The region's voxels resting on the support (sharing a face with a

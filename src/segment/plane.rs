@@ -58,18 +58,13 @@ const MIN_SPREAD: f32 = 6.0;
 pub fn flat_slab(geom: &GridGeom, voxels: &[u32]) -> Option<Slab> {
     let h = geom.spacing().min_element();
     let points: Vec<Vec3> = voxels.iter().map(|&v| geom.point_of(v as usize)).collect();
-    let slab = |f: &Fit| Slab {
-        centre: f.centre,
-        normal: f.normal,
-        half_width: (HALF_WIDTH_SIGMAS * f.thickness).max(MIN_HALF_WIDTH * h),
-    };
-    let first = fit(points.iter().copied())?;
-    let second = fit(points.iter().copied().filter(|&p| slab(&first).holds(p)))?;
-    let inside = points.iter().filter(|&&p| slab(&second).holds(p)).count();
+    let first = fit(points.iter().copied())?.slab(h);
+    let second = fit(points.iter().copied().filter(|&p| first.holds(p)))?;
+    let inside = points.iter().filter(|&&p| second.slab(h).holds(p)).count();
     let flat = inside as f32 >= FLAT_SHARE * points.len() as f32
         && second.thickness <= FLAT_RATIO * second.spread
         && second.spread >= MIN_SPREAD * h;
-    flat.then(|| slab(&second))
+    flat.then(|| second.slab(h))
 }
 
 /// The least-squares slab of `voxels` and whether it is thin against its
@@ -78,22 +73,36 @@ pub fn flat_slab(geom: &GridGeom, voxels: &[u32]) -> Option<Slab> {
 pub fn thin_slab(geom: &GridGeom, voxels: &[u32]) -> Option<Slab> {
     let h = geom.spacing().min_element();
     let f = fit(voxels.iter().map(|&v| geom.point_of(v as usize)))?;
-    (f.thickness <= FLAT_RATIO * f.spread).then(|| Slab {
-        centre: f.centre,
-        normal: f.normal,
-        half_width: (HALF_WIDTH_SIGMAS * f.thickness).max(MIN_HALF_WIDTH * h),
-    })
+    (f.thickness <= FLAT_RATIO * f.spread).then(|| f.slab(h))
 }
 
-/// Two unit axes spanning the plane of `normal`, as near the grid's axes
-/// as it allows: a plane across a grid axis gets the other two, so that
-/// squares of a voxel's side in it ([`super::supports`],
-/// [`super::beside`]) fall on the voxels' own columns.
-pub fn in_plane_axes(normal: Vec3) -> [Vec3; 2] {
-    let across = normal.abs().max_position();
-    let a = Vec3::AXES[(across + 1) % 3];
-    let a = (a - a.dot(normal) * normal).normalize_or(normal.any_orthonormal_vector());
-    [a, normal.cross(a)]
+/// Voxel-sized squares in a slab's plane, on two axes as near the grid's
+/// as the plane allows (a plane across a grid axis gets the other two),
+/// so that the squares fall on the voxels' own columns ([`super::supports`],
+/// [`super::beside`]).
+pub struct PlaneCells {
+    origin: Vec3,
+    axes: [Vec3; 2],
+    h: f32,
+}
+
+impl PlaneCells {
+    pub fn new(geom: &GridGeom, slab: &Slab) -> Self {
+        let n = slab.normal;
+        let a = Vec3::AXES[(n.abs().max_position() + 1) % 3];
+        let a = (a - a.dot(n) * n).normalize_or(n.any_orthonormal_vector());
+        PlaneCells {
+            origin: slab.centre,
+            axes: [a, n.cross(a)],
+            h: geom.spacing().min_element(),
+        }
+    }
+
+    /// The square under point `p`.
+    pub fn of(&self, p: Vec3) -> [i32; 2] {
+        let d = p - self.origin;
+        self.axes.map(|a| (d.dot(a) / self.h).floor() as i32)
+    }
 }
 
 /// A least-squares plane: its centre, unit normal, and the standard
@@ -103,6 +112,17 @@ struct Fit {
     normal: Vec3,
     thickness: f32,
     spread: f32,
+}
+
+impl Fit {
+    /// Its slab on a grid of spacing `h`.
+    fn slab(&self, h: f32) -> Slab {
+        Slab {
+            centre: self.centre,
+            normal: self.normal,
+            half_width: (HALF_WIDTH_SIGMAS * self.thickness).max(MIN_HALF_WIDTH * h),
+        }
+    }
 }
 
 /// One pass of sums in f64 (world coordinates of a few units against

@@ -25,7 +25,7 @@
 //!   surface ([`BLUR_SHARE`]); if the walk runs out of voxels first,
 //!   nothing stood under the region.
 
-use super::plane::Slab;
+use super::plane::{PlaneCells, Slab};
 use crate::field::{Bitmap, GridGeom};
 use glam::Vec3;
 
@@ -70,8 +70,7 @@ pub fn with_supports(geom: &GridGeom, solid: &Bitmap, region: Bitmap, slab: &Sla
 /// The cells (voxel-sized squares in the slab's plane) that the region
 /// covers, one cell wider all round.
 struct Outline {
-    origin: Vec3,
-    axes: [Vec3; 2],
+    plane: PlaneCells,
     h: f32,
     min: [i32; 2],
     size: [usize; 2],
@@ -81,45 +80,46 @@ struct Outline {
 
 impl Outline {
     fn of(geom: &GridGeom, region: &Bitmap, slab: &Slab) -> Self {
-        let axes = super::plane::in_plane_axes(slab.normal);
-        let h = geom.spacing().min_element();
-        let cell_of = |p: Vec3| {
-            let d = p - slab.centre;
-            [(d.dot(axes[0]) / h).floor() as i32, (d.dot(axes[1]) / h).floor() as i32]
-        };
-        let covered: Vec<[i32; 2]> = region.ones().map(|v| cell_of(geom.point_of(v))).collect();
+        let plane = PlaneCells::new(geom, slab);
+        let covered: Vec<[i32; 2]> = region.ones().map(|v| plane.of(geom.point_of(v))).collect();
         let lo = |k: usize| covered.iter().map(|c| c[k]).min().unwrap_or(0) - 1;
         let hi = |k: usize| covered.iter().map(|c| c[k]).max().unwrap_or(0) + 1;
         let min = [lo(0), lo(1)];
         let size = [(hi(0) - min[0] + 1) as usize, (hi(1) - min[1] + 1) as usize];
-        let mut cells = vec![false; size[0] * size[1]];
-        for c in &covered {
-            for dy in -1..=1 {
-                for dx in -1..=1 {
-                    let (x, y) = ((c[0] + dx - min[0]) as usize, (c[1] + dy - min[1]) as usize);
-                    cells[y * size[0] + x] = true;
-                }
-            }
-        }
-        let count = cells.iter().filter(|&&c| c).count();
-        Outline {
-            origin: slab.centre,
-            axes,
-            h,
+        let mut outline = Outline {
+            plane,
+            h: geom.spacing().min_element(),
             min,
             size,
-            cells,
-            count,
-        }
+            cells: vec![false; size[0] * size[1]],
+            count: 0,
+        };
+        outline.cells = outline.widened(covered.into_iter());
+        outline.count = outline.cells.iter().filter(|&&c| c).count();
+        outline
     }
 
     /// The cell under point `p`, if inside the outline's box.
     fn cell(&self, p: Vec3) -> Option<usize> {
-        let d = p - self.origin;
-        let x = (d.dot(self.axes[0]) / self.h).floor() as i32 - self.min[0];
-        let y = (d.dot(self.axes[1]) / self.h).floor() as i32 - self.min[1];
+        let [x, y] = self.plane.of(p);
+        let (x, y) = (x - self.min[0], y - self.min[1]);
         let inside = x >= 0 && y >= 0 && (x as usize) < self.size[0] && (y as usize) < self.size[1];
         inside.then(|| y as usize * self.size[0] + x as usize)
+    }
+
+    /// The box's cells `squares` cover, one cell wider all round (clipped
+    /// to the box).
+    fn widened(&self, squares: impl Iterator<Item = [i32; 2]>) -> Vec<bool> {
+        let mut cells = vec![false; self.size[0] * self.size[1]];
+        for [x, y] in squares {
+            for (dx, dy) in (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (dx, dy))) {
+                let (nx, ny) = (x + dx - self.min[0], y + dy - self.min[1]);
+                if nx >= 0 && ny >= 0 && (nx as usize) < self.size[0] && (ny as usize) < self.size[1] {
+                    cells[ny as usize * self.size[0] + nx as usize] = true;
+                }
+            }
+        }
+        cells
     }
 
     fn holds(&self, p: Vec3) -> bool {
@@ -280,20 +280,11 @@ impl<'a> Walk<'a> {
     /// The outline cells under `voxels`, one cell wider all round.
     fn columns(&self, voxels: &[u32]) -> Vec<bool> {
         let o = self.ground.outline;
-        let mut cells = vec![false; o.cells.len()];
-        for &v in voxels {
-            let Some(c) = o.cell(self.ground.geom.point_of(v as usize)) else {
-                continue;
-            };
-            let (x, y) = ((c % o.size[0]) as i32, (c / o.size[0]) as i32);
-            for (dx, dy) in (-1..=1).flat_map(|dy| (-1..=1).map(move |dx| (dx, dy))) {
-                let (nx, ny) = (x + dx, y + dy);
-                if nx >= 0 && ny >= 0 && (nx as usize) < o.size[0] && (ny as usize) < o.size[1] {
-                    cells[ny as usize * o.size[0] + nx as usize] = true;
-                }
-            }
-        }
-        cells
+        o.widened(
+            voxels
+                .iter()
+                .map(|&v| o.plane.of(self.ground.geom.point_of(v as usize))),
+        )
     }
 
     /// Whether the support's `layer`, followed through solid voxels of the
@@ -303,11 +294,7 @@ impl<'a> Walk<'a> {
             return false;
         };
         let goal = (BEYOND * layer.len() as f32).ceil() as usize;
-        let mut seen = Bitmap::from_ones(self.ground.geom.res, &{
-            let mut s = layer.to_vec();
-            s.sort_unstable();
-            s
-        });
+        let mut seen = Bitmap::from_ones(self.ground.geom.res, layer);
         let mut stack: Vec<usize> = layer.iter().map(|&v| v as usize).collect();
         let mut count = layer.len();
         while let Some(v) = stack.pop() {
