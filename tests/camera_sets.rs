@@ -775,3 +775,43 @@ fn colmap_errors() {
         .to_string()
         .contains("no COLMAP model"));
 }
+
+/// Which way is up, from how the cameras were held: an orbit looking down
+/// on a scene gives the orbit's axis, forward-facing photos their shared
+/// up (in NDC: +y as well, the map keeps the image's axes), and cameras
+/// rolled every which way give nothing.
+#[test]
+fn the_cameras_agree_on_up_or_say_nothing() {
+    let k = Intrinsics::from_fov_x(64, 48, 0.8);
+    for elevation in [0.2f32, 0.6, 1.0] {
+        let orbit: Vec<Camera> = (0..12)
+            .map(|i| {
+                let a = i as f32 / 12.0 * std::f32::consts::TAU;
+                let eye = 3.0 * Vec3::new(a.cos() * elevation.cos(), elevation.sin(), a.sin() * elevation.cos());
+                Camera::look_at(k, eye + Vec3::new(0.5, 0.0, 0.0), Vec3::new(0.5, 0.0, 0.0), Vec3::Y)
+            })
+            .collect();
+        let up = isrf::camera::up_of(&orbit).expect("an orbit at moderate elevation agrees");
+        assert!(up.dot(Vec3::Y) > 0.9999, "elevation {elevation}: {up:?}");
+    }
+    // Forward-facing, slightly turned: their shared up, also through NDC.
+    let ff: Vec<Camera> = (0..5)
+        .map(|i| {
+            let eye = Vec3::new(i as f32 * 0.1 - 0.2, 0.0, 0.0);
+            Camera::look_at(k, eye, eye + Vec3::new(0.05 * i as f32 - 0.1, 0.0, -1.0), Vec3::Y)
+        })
+        .collect();
+    assert!(isrf::camera::up_of(&ff).unwrap().dot(Vec3::Y) > 0.9999);
+    let ndc: Vec<Camera> = ff.iter().map(|c| c.with_ndc(Some(Ndc::new(50.0, 64, 48)))).collect();
+    let up = isrf::camera::up_of(&ndc).unwrap();
+    assert!(up.dot(Vec3::Y) > 0.999, "{up:?}");
+    // Rolled about their view axis by a quarter turn each: no shared up.
+    let rolled: Vec<Camera> = (0..4)
+        .map(|i| {
+            let roll = Quat::from_rotation_z(i as f32 * std::f32::consts::FRAC_PI_2);
+            Camera::new(k, Affine3A::from_quat(roll))
+        })
+        .collect();
+    assert_eq!(isrf::camera::up_of(&rolled), None);
+    assert_eq!(isrf::camera::up_of(&[]), None);
+}

@@ -357,26 +357,30 @@ fn info_ends_quietly_when_its_reader_goes_away() {
 }
 
 /// A field trained on a forward-facing capture says which NDC space it
-/// lives in: the header keeps it, fields cut from it (an exported object)
-/// and its sparse form keep it, fields without it load as before, and a
-/// broken one is refused with the file's name.
+/// lives in, and a trained field which way is up: the header keeps both,
+/// fields cut from it (an exported object) and its sparse form keep them,
+/// fields without them load as before, and a broken one is refused with
+/// the file's name.
 #[test]
 fn the_ndc_space_survives_files_crops_and_sparsifying() {
     let m = blob_model(5);
     let mut field = m.to_sparse_field();
-    assert!(field.ndc.is_none());
+    assert!(field.ndc.is_none() && field.up.is_none());
     let ndc = isrf::camera::Ndc::new(407.6, 504, 378);
+    let up = glam::Vec3::new(0.0, 0.6, 0.8);
     field.ndc = Some(ndc);
+    field.up = Some(up);
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("ndc.safetensors");
     field.save(&path).unwrap();
     let back = Field::load(&path).unwrap();
     assert_eq!(back.ndc, Some(ndc));
+    assert_eq!(back.up, Some(up));
     // An object cut from it: the bitmap of its occupied voxels.
     let bits = isrf::field::Bitmap::from_fn(back.res(), |i| back.density.sigma_at(i) > 1.0);
     assert!(bits.count() > 0);
     let obj = isrf::edit::crop::object_field(&back, &bits, 1).unwrap();
-    assert_eq!(obj.ndc, Some(ndc));
+    assert_eq!((obj.ndc, obj.up), (Some(ndc), Some(up)));
     assert_eq!(
         isrf::field::sparse::sparsify(&m.to_field().in_space_of(&back))
             .unwrap()
@@ -386,9 +390,16 @@ fn the_ndc_space_survives_files_crops_and_sparsifying() {
     // Without NDC the header has no such key, as before.
     let plain = dir.path().join("plain.safetensors");
     m.to_sparse_field().save(&plain).unwrap();
-    assert!(Field::load(&plain).unwrap().ndc.is_none());
+    let plain = Field::load(&plain).unwrap();
+    assert!(plain.ndc.is_none() && plain.up.is_none());
     let bad = dir.path().join("bad.safetensors");
     tamper(&path, &bad, |v| edit_header(v, |h| h["ndc"]["focal"] = (-1.0).into()));
     let e = Field::load(&bad).unwrap_err().to_string();
     assert!(e.contains("bad.safetensors") && e.contains("NDC"), "{e}");
+    let flat = dir.path().join("flat.safetensors");
+    tamper(&path, &flat, |v| {
+        edit_header(v, |h| h["up"] = serde_json::json!([0.0, 0.0, 0.0]))
+    });
+    let e = Field::load(&flat).unwrap_err().to_string();
+    assert!(e.contains("flat.safetensors") && e.contains("up direction"), "{e}");
 }

@@ -402,7 +402,9 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
     let key = field_key(capture_key, &session.trainer.config, &report.source, crc.finalize());
     let (path, _) = cache_paths(fields_dir, &key);
     if !cfg.retrain {
-        if let Some((field, meta)) = load_field(fields_dir, &key)? {
+        if let Some((mut field, meta)) = load_field(fields_dir, &key)? {
+            // Fields cached before fields kept their up direction.
+            field.up = field.up.or(session.dataset.cameras.up());
             return Ok(Trained {
                 field: Arc::new(field),
                 maps: session.trainer.teacher.take().expect("teacher just attached"),
@@ -454,7 +456,9 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
         }
     }
     let seconds = t0.elapsed().as_secs_f64();
-    let field = Arc::new(session.trainer.model.to_sparse_field());
+    let mut field = session.trainer.model.to_sparse_field();
+    field.up = session.dataset.cameras.up();
+    let field = Arc::new(field);
     let psnr = session.final_eval(field.clone())?.map(|r| r.mean_psnr);
     let meta = TrainedMeta {
         key,

@@ -116,6 +116,10 @@ impl Camera {
     pub fn position(&self) -> Vec3 {
         self.c2w.translation.into()
     }
+    /// Unit up direction of the image (camera +y in world).
+    pub fn up(&self) -> Vec3 {
+        Vec3::from(self.c2w.matrix3.y_axis).normalize_or_zero()
+    }
     /// Unit viewing direction (camera −z in world).
     pub fn forward(&self) -> Vec3 {
         -Vec3::from(self.c2w.matrix3.z_axis).normalize()
@@ -175,3 +179,32 @@ impl Camera {
         }
     }
 }
+
+/// The cameras' shared up direction, in the space of the field trained
+/// from them (NDC for forward-facing captures), if they agree on one: the
+/// mean of their image-up directions when it is at least [`UPRIGHT`] long
+/// (people hold cameras upright; orbits that look down on a scene tilt
+/// each camera's up by their elevation, and a mean of unit vectors that
+/// point every which way is short).
+pub fn up_of(cameras: &[Camera]) -> Option<Vec3> {
+    let sum: Vec3 = cameras.iter().map(Camera::up).sum();
+    let mean = sum / cameras.len().max(1) as f32;
+    if !mean.is_finite() || mean.length() < UPRIGHT {
+        return None;
+    }
+    let up = mean.normalize();
+    match cameras.iter().find_map(|c| c.ndc) {
+        // The NDC map is projective: a direction maps at a point, here
+        // one in front of the reference camera.
+        Some(ndc) => {
+            let at = Vec3::new(0.0, 0.0, -2.0 * ndc.near);
+            let d = ndc.to_ndc(at + 0.01 * up)? - ndc.to_ndc(at)?;
+            d.try_normalize()
+        }
+        None => Some(up),
+    }
+}
+
+/// The least length of the mean image-up direction for the cameras to
+/// agree on one ([`up_of`]): an orbit at 60° elevation gives 0.5.
+pub const UPRIGHT: f32 = 0.45;

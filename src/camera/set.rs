@@ -210,6 +210,11 @@ impl CameraSet {
     pub fn len(&self) -> usize {
         self.frames.len()
     }
+    /// The cameras' shared up direction ([`super::up_of`]).
+    pub fn up(&self) -> Option<glam::Vec3> {
+        let cameras: Vec<_> = self.frames.iter().map(|f| f.camera).collect();
+        super::up_of(&cameras)
+    }
     pub fn is_empty(&self) -> bool {
         self.frames.is_empty()
     }

@@ -64,6 +64,13 @@ pub fn run(a: Args) -> Result<()> {
         None => "none".into(),
     };
     println!("  features    {feat}");
+    match field.up {
+        Some(u) => println!(
+            "  up          [{:.3}, {:.3}, {:.3}] (from the training cameras)",
+            u.x, u.y, u.z
+        ),
+        None => println!("  up          unknown (segmentation keeps the ground an object stands on)"),
+    }
     let occupied = (0..g.len())
         .filter(|&i| field.density.sigma_at(i) > isrf::field::cache::OCCUPIED_FLOOR)
         .count();

@@ -421,6 +421,9 @@ fn finish(session: &Session, a: &Args, ckpt: &Path) -> Result<()> {
     // A forward-facing capture's field lives in its NDC space; the file
     // says so, so that every view (editor, render) sees it through it.
     field.ndc = session.dataset.cameras.frames.first().and_then(|f| f.camera.ndc);
+    // Which way is up, from how the photos were held (segmentation tells
+    // the ground from what stands on it with it).
+    field.up = session.dataset.cameras.up();
     let field = Arc::new(field);
     field.save(&a.out)?;
     let file_bytes = std::fs::metadata(&a.out).map_or(0, |m| m.len());

@@ -469,6 +469,7 @@ fn stand_in(path: &Path) -> Result<Field> {
     let features = (channels > 0).then_some((channels, &zero as &(dyn Fn(Vec3, &mut [f32]) + Sync)));
     let mut f = FieldBuilder::new(bounds, [2; 3]).build(|_| 0.0, |_| Vec3::ZERO, features);
     f.ndc = h.ndc;
+    f.up = h.up.map(|u| Vec3::from(u).normalize());
     Ok(f)
 }
 

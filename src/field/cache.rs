@@ -40,6 +40,9 @@ pub struct FeatureCache {
     /// Fine voxels per voxel of this cache along each axis: 1 for a cache
     /// of the field's own grid, f for its [coarse copy](Self::coarse).
     pub factor: usize,
+    /// The scene's up direction in the grid's space, where known
+    /// ([`Field::up`]).
+    pub up: Option<glam::Vec3>,
     /// The coarser copy, made when first asked for.
     coarse: std::sync::OnceLock<Option<Box<FeatureCache>>>,
     /// See [`Self::neighbours`].
@@ -113,7 +116,8 @@ impl FeatureCache {
             sigma,
             feats,
             colours,
-        ))
+        )
+        .with_up(field.up))
     }
 
     /// A cache of the given rows (`voxels` ascending and set in `index`);
@@ -151,6 +155,7 @@ impl FeatureCache {
             colours,
             voxel_size,
             factor: 1,
+            up: None,
             coarse: std::sync::OnceLock::new(),
             neighbours: std::sync::OnceLock::new(),
             solid: std::sync::Mutex::new(None),
@@ -161,6 +166,12 @@ impl FeatureCache {
     /// each axis.
     pub fn coarsened(mut self, f: usize) -> Self {
         self.factor = f;
+        self
+    }
+
+    /// This cache with the scene's up direction ([`Self::up`]).
+    pub fn with_up(mut self, up: Option<glam::Vec3>) -> Self {
+        self.up = up;
         self
     }
 

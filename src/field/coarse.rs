@@ -148,7 +148,11 @@ pub fn build_with(fine: &FeatureCache, f: usize) -> Option<FeatureCache> {
             }
         }
     });
-    Some(FeatureCache::from_parts(geom, ch, fine.voxel_size, voxels, index, sigma, feats, colours).coarsened(f))
+    Some(
+        FeatureCache::from_parts(geom, ch, fine.voxel_size, voxels, index, sigma, feats, colours)
+            .coarsened(f)
+            .with_up(fine.up),
+    )
 }
 
 /// The coarse voxels (`f` fine ones to a coarse one along each axis)

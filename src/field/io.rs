@@ -163,6 +163,10 @@ pub struct Header {
     /// ([`super::Field::ndc`]; readers before it ignore it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ndc: Option<crate::camera::Ndc>,
+    /// The scene's up direction ([`super::Field::up`]; readers before it
+    /// ignore it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub up: Option<[f32; 3]>,
 }
 
 impl Header {
@@ -463,6 +467,7 @@ fn plan(field: &Field, feature_storage: Storage) -> Result<(Out<'_>, Header)> {
         feature_occupied,
         source: field.source.clone(),
         ndc: field.ndc,
+        up: field.up.map(|u| u.to_array()),
     };
     Ok((out, header))
 }
@@ -812,6 +817,12 @@ fn validate_header(h: &Header) -> Result<()> {
     if let Some(n) = &h.ndc {
         n.validate()?;
     }
+    if let Some(u) = h.up {
+        crate::ensure!(
+            u.iter().all(|x| x.is_finite()) && Vec3::from(u).length() > 0.5,
+            "up direction {u:?} is not a finite unit vector"
+        );
+    }
     let chan = |c: &ChannelHeader, what: &str| -> Result<()> {
         check_res(c.resolution, what)?;
         crate::ensure!(
@@ -1118,6 +1129,7 @@ pub fn load(path: &Path) -> Result<Field> {
     );
     field.source = h.source;
     field.ndc = h.ndc;
+    field.up = h.up.map(|u| Vec3::from(u).normalize());
     Ok(field)
 }
 

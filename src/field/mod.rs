@@ -79,6 +79,11 @@ pub struct Field {
     /// trained in: its coordinates are NDC, not the world, and views see it
     /// through this mapping (kept in the file's header).
     pub ndc: Option<crate::camera::Ndc>,
+    /// The scene's up direction in the field's space (unit), where it is
+    /// known: from the cameras of the capture it was trained on
+    /// ([`crate::camera::up_of`]). Segmentation uses it to tell the ground
+    /// an object stands on from the object (kept in the file's header).
+    pub up: Option<glam::Vec3>,
     cache: OnceLock<Arc<FeatureCache>>,
     macro_grid: OnceLock<MacroGrid>,
     /// This field with VM appearance baked into SH (GPU view), on first use.
@@ -94,6 +99,7 @@ impl Clone for Field {
             occupancy: self.occupancy.clone(),
             source: self.source.clone(),
             ndc: self.ndc,
+            up: self.up,
             cache: OnceLock::new(),
             macro_grid: OnceLock::new(),
             baked: OnceLock::new(),
@@ -115,15 +121,18 @@ impl Field {
             occupancy,
             source: None,
             ndc: None,
+            up: None,
             cache: OnceLock::new(),
             macro_grid: OnceLock::new(),
             baked: OnceLock::new(),
         }
     }
-    /// This field in the same space as `other` (its NDC, if any): for
-    /// fields derived from another (cropped, sparsified, baked, lifted).
+    /// This field in the same space as `other` (its NDC and up direction,
+    /// if any): for fields derived from another (cropped, sparsified,
+    /// baked, lifted).
     pub fn in_space_of(mut self, other: &Field) -> Field {
         self.ndc = other.ndc;
+        self.up = other.up;
         self
     }
     pub fn bounds(&self) -> Aabb {

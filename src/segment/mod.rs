@@ -10,6 +10,7 @@ pub mod cut;
 pub mod dense;
 pub mod enclosed;
 mod flood;
+mod footing;
 pub mod grow;
 pub mod kmeans;
 pub mod material;
@@ -684,7 +685,8 @@ fn with_legs(cache: &FeatureCache, floor: f32, region: Bitmap) -> Bitmap {
 /// What the region's shape says about its object: a flat region gains the
 /// legs that hold it up ([`supports`]); any other region, drawn on by a
 /// stroke (`anchors`, the voxels under it), loses what stands beside it on
-/// its support ([`beside`]). (A flat region stands beside nothing: a
+/// its support ([`beside`]) and, where the field knows which way is up,
+/// the levels of the ground under it that it took ([`footing`]). (A flat region stands beside nothing: a
 /// floor's patches would otherwise count as things standing on the
 /// field's solid under it.)
 fn by_structure(cache: &FeatureCache, floor: f32, region: Bitmap, anchors: &[u32]) -> Bitmap {
@@ -694,7 +696,15 @@ fn by_structure(cache: &FeatureCache, floor: f32, region: Bitmap, anchors: &[u32
         Some(slab) => supports::with_supports(&cache.geom, &solid(), region, &slab),
         None if !anchors.is_empty() => {
             let stroked = anchor::near_anchors(&region, anchors, anchor::radius(cache));
-            beside::without_neighbours(&cache.geom, &solid(), region, &stroked)
+            let region = beside::without_neighbours(&cache.geom, &solid(), region, &stroked);
+            match cache.up {
+                Some(up) => {
+                    let mut anchors = anchors.to_vec();
+                    anchors.sort_unstable();
+                    footing::off_the_ground(&cache.geom, &solid(), region, up, &anchors)
+                }
+                None => region,
+            }
         }
         None => region,
     }
