@@ -257,7 +257,14 @@ fn command_line_import_info_and_export() {
     let (ok, text) = run(&["info", field.to_str().unwrap()]);
     assert!(ok && text.contains("sh degree 2"), "{text}");
     assert!(text.contains("up          [0.000, -1.000, 0.000]"), "{text}");
-    let (ok, text) = run(&["import", path.to_str().unwrap(), "--out", "x.safetensors", "--up", "0,0"]);
+    let (ok, text) = run(&[
+        "import",
+        path.to_str().unwrap(),
+        "--out",
+        "x.safetensors",
+        "--up",
+        "0,0",
+    ]);
     assert!(!ok && text.contains("'0,0' is not a direction"), "{text}");
     let out = dir.path().join("all.ply");
     let (ok, text) = run(&["export-splats", field.to_str().unwrap(), "--out", out.to_str().unwrap()]);

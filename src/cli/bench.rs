@@ -283,7 +283,7 @@ fn run_field_strokes(path: &std::path::Path, a: &SegmentArgs) -> Result<()> {
         strokes.extend(isrf::segment::load_strokes_on(s, cameras.as_ref())?);
     }
     let (field, load_ms) = isrf::bench::time_ms(|| isrf::field::Field::load(path));
-    let field = std::sync::Arc::new(field?);
+    let field = std::sync::Arc::new(field?.or_up_from(cameras.as_ref()));
     let r = bench_field_strokes(field, &strokes, &p, a.repeats)?;
     println!(
         "stroke -> mask on {}: grid {:?}, {} cached voxels x {} channels, {} rayon threads, median of {} runs, load average {}",

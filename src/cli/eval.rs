@@ -65,8 +65,8 @@ pub fn run(a: Args) -> Result<()> {
         return run_alpha(&a, ds);
     }
     if let Some(root) = &a.nvos {
-        let field = Arc::new(Field::load(a.field.as_ref().unwrap())?);
         let cams = CameraSet::load(a.cameras.as_ref().unwrap())?;
+        let field = Arc::new(Field::load(a.field.as_ref().unwrap())?.or_up_from(Some(&cams)));
         let r = evaluate_nvos(
             field,
             &cams,

@@ -37,7 +37,9 @@ fn parse_up(s: &str) -> Result<glam::Vec3, String> {
         [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) && (x, y, z) != (0.0, 0.0, 0.0) => {
             Ok(glam::Vec3::new(x, y, z).normalize())
         }
-        _ => Err(format!("'{s}' is not a direction X,Y,Z (three finite numbers, not all zero)")),
+        _ => Err(format!(
+            "'{s}' is not a direction X,Y,Z (three finite numbers, not all zero)"
+        )),
     }
 }
 

@@ -169,7 +169,7 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     let t0 = std::time::Instant::now();
-    let field = Arc::new(Field::load(&a.field)?);
+    let field = Arc::new(Field::load(&a.field)?.or_up_from(cameras.as_ref()));
     let load_ms = isrf::util::ms_since(t0);
     let t0 = std::time::Instant::now();
     let cache = field.feature_cache()?;

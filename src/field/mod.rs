@@ -135,6 +135,15 @@ impl Field {
         self.up = other.up;
         self
     }
+    /// This field, told which way is up by the cameras of its capture
+    /// (`<name>.cameras.json`) when its file does not say: fields written
+    /// before files kept it.
+    pub fn or_up_from(mut self, cameras: Option<&crate::camera::CameraSet>) -> Field {
+        if self.up.is_none() {
+            self.up = cameras.and_then(|c| c.up());
+        }
+        self
+    }
     pub fn bounds(&self) -> Aabb {
         self.density.geom.bounds
     }
