@@ -649,10 +649,14 @@ fn script_strokes_may_name_a_view_of_the_fields_capture() {
     let mask = |s: &Session| s.object("pot").unwrap().mask.clone();
     assert!(mask(&named).count() > 0);
     assert_eq!(*mask(&named), *mask(&builtin));
+    // The file does not say which way is up; the cameras beside it do.
+    let up = |s: &Session| s.field("room").unwrap().field.up;
+    assert_eq!(up(&named), Some(scene.stroke_camera.up()));
     // Without the cameras file the view cannot be found: a clear error.
     std::fs::remove_file(dir.path().join("room.cameras.json")).unwrap();
     let mut bare = Session::new(dir.path(), dir.path());
     perform(&mut bare, &script.commands[0], None).unwrap();
+    assert_eq!(up(&bare), None);
     let e = perform(&mut bare, &script.commands[1], None).unwrap_err().to_string();
     assert!(e.contains("transform_matrix"), "{e}");
 }

@@ -286,7 +286,16 @@ impl Session {
     fn load_source(&self, source: &FieldSource) -> Result<(Arc<Field>, Option<Arc<DemoInfo>>)> {
         match source {
             FieldSource::File(p) if self.dry => Ok((Arc::new(stand_in(&self.resolve(p))?), None)),
-            FieldSource::File(p) => Ok((Arc::new(Field::load(&self.resolve(p))?), None)),
+            FieldSource::File(p) => {
+                let path = self.resolve(p);
+                let field = Field::load(&path)?;
+                // A field written before files kept up: its capture's cameras say it.
+                let field = match field.up {
+                    Some(_) => field,
+                    None => field.or_up_from(crate::camera::set::capture_cameras(&path).as_ref()),
+                };
+                Ok((Arc::new(field), None))
+            }
             FieldSource::Demo { scene, res, seed } => {
                 crate::demo::check_res(*res)?;
                 // A dry run needs the demo's cameras and objects, not its detail.
