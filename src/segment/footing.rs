@@ -46,19 +46,21 @@ const OUTER: usize = 4;
 /// stroke (ascending).
 pub fn off_the_ground(geom: &GridGeom, solid: &Bitmap, region: Bitmap, up: Vec3, anchors: &[u32]) -> Bitmap {
     let frame = Frame::new(geom, up);
-    let mut by_level: Vec<(usize, u32)> = region.ones().map(|v| (frame.height(v), v as u32)).collect();
-    by_level.sort_unstable();
-    let Some(&(lowest, _)) = by_level.first() else {
+    let Some(lowest) = region.ones().map(|v| frame.height(v)).min() else {
         return region;
     };
-    let low: Vec<u32> = by_level
-        .iter()
-        .take_while(|&&(h, _)| h < lowest + MAX_LEVELS)
-        .map(|&(_, v)| v)
+    // Only the lowest levels are looked at (a whole model's region holds
+    // hundreds of thousands of voxels: no sort of them all).
+    let mut by_level: Vec<(usize, u32)> = region
+        .ones()
+        .map(|v| (frame.height(v), v as u32))
+        .filter(|&(h, _)| h < lowest + MAX_LEVELS)
         .collect();
+    by_level.sort_unstable();
+    let low: Vec<u32> = by_level.iter().map(|&(_, v)| v).collect();
     let annulus = Annulus::around(&frame, &low);
     let mut out = region;
-    for level in by_level.chunk_by(|a, b| a.0 == b.0).take(MAX_LEVELS) {
+    for level in by_level.chunk_by(|a, b| a.0 == b.0) {
         let touched = level.iter().any(|(_, v)| anchors.binary_search(v).is_ok());
         if touched || annulus.solid_share(&frame, level[0].0, |v| solid.get(v) && !out.get(v)) < GROUND {
             break;
