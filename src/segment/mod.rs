@@ -1065,7 +1065,7 @@ impl MaskBuilder {
 /// cheap; zero features left out).
 fn mask_centres(cache: &FeatureCache, mask: &Bitmap, p: &SegmentParams) -> Centroids {
     let rows: Vec<usize> = mask.ones().filter_map(|v| cache.index.slot(v)).collect();
-    let sample = unit_feature_sample(cache, &rows, false);
+    let sample = unit_feature_sample(cache, &rows, false, MAX_CLUSTERED_ROWS);
     kmeans(&sample, cache.channels, p.k, p.kmeans_seed, p.kmeans_iters)
 }
 
@@ -1102,7 +1102,7 @@ fn held_centres(
         .filter(|(_, (a, b))| a < b)
         .map(|(&r, _)| r)
         .collect();
-    let sample = unit_feature_sample(cache, &held, false);
+    let sample = unit_feature_sample(cache, &held, false, MAX_CLUSTERED_ROWS);
     kmeans_until(&sample, cache.channels, p.k, p.kmeans_seed, HELD_STOP)
 }
 
@@ -1118,11 +1118,11 @@ const HELD_STOP: Stop = Stop {
 /// Most cache rows a background or mask model clusters (a strided sample).
 const MAX_CLUSTERED_ROWS: usize = 20_000;
 
-/// The unit features of a strided sample of at most
-/// [`MAX_CLUSTERED_ROWS`] of cache `rows`, row after row; zero features
-/// kept as zero vectors with `keep_zero`, else left out.
-fn unit_feature_sample(cache: &FeatureCache, rows: &[usize], keep_zero: bool) -> Vec<f32> {
-    let stride = rows.len().div_ceil(MAX_CLUSTERED_ROWS).max(1);
+/// The unit features of a strided sample of at most `most` of cache
+/// `rows`, row after row; zero features kept as zero vectors with
+/// `keep_zero`, else left out.
+fn unit_feature_sample(cache: &FeatureCache, rows: &[usize], keep_zero: bool, most: usize) -> Vec<f32> {
+    let stride = rows.len().div_ceil(most.max(1)).max(1);
     let c = cache.channels;
     let mut feats = Vec::with_capacity(rows.len().div_ceil(stride) * c);
     for &r in rows.iter().step_by(stride) {
