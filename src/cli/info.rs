@@ -65,10 +65,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     println!("  features    {feat}");
     match field.up {
-        Some(u) => println!(
-            "  up          [{:.3}, {:.3}, {:.3}] (from the training cameras)",
-            u.x, u.y, u.z
-        ),
+        Some(u) => println!("  up          [{:.3}, {:.3}, {:.3}]", u.x, u.y, u.z),
         None => println!("  up          unknown (segmentation keeps the ground an object stands on)"),
     }
     let occupied = (0..g.len())

@@ -820,7 +820,7 @@ fn validate_header(h: &Header) -> Result<()> {
     if let Some(u) = h.up {
         crate::ensure!(
             u.iter().all(|x| x.is_finite()) && Vec3::from(u).length() > 0.5,
-            "up direction {u:?} is not a finite unit vector"
+            "up direction {u:?} is not a finite direction of length about 1"
         );
     }
     let chan = |c: &ChannelHeader, what: &str| -> Result<()> {

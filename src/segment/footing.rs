@@ -93,7 +93,10 @@ impl<'a> Frame<'a> {
         }
     }
     fn height(&self, v: usize) -> usize {
-        let c = self.geom.coords(v)[self.axis];
+        self.flip(self.geom.coords(v)[self.axis])
+    }
+    /// A grid coordinate along the up axis as a height, and back.
+    fn flip(&self, c: usize) -> usize {
         if self.rising {
             c
         } else {
@@ -107,11 +110,7 @@ impl<'a> Frame<'a> {
     /// The voxel of `cell` at `height`.
     fn voxel(&self, cell: [usize; 2], height: usize) -> usize {
         let mut c = [0; 3];
-        c[self.axis] = if self.rising {
-            height
-        } else {
-            self.geom.res[self.axis] - 1 - height
-        };
+        c[self.axis] = self.flip(height);
         c[self.across[0]] = cell[0];
         c[self.across[1]] = cell[1];
         self.geom.index(c[0], c[1], c[2])

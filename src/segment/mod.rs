@@ -684,12 +684,13 @@ fn with_legs(cache: &FeatureCache, floor: f32, region: Bitmap) -> Bitmap {
 
 /// What the region's shape says about its object: a flat region gains the
 /// legs that hold it up ([`supports`]); any other region, drawn on by a
-/// stroke (`anchors`, the voxels under it), loses what stands beside it on
+/// stroke (`anchors`, the voxels under it, ascending), loses what stands beside it on
 /// its support ([`beside`]) and, where the field knows which way is up,
 /// the levels of the ground under it that it took ([`footing`]). (A flat region stands beside nothing: a
 /// floor's patches would otherwise count as things standing on the
 /// field's solid under it.)
 fn by_structure(cache: &FeatureCache, floor: f32, region: Bitmap, anchors: &[u32]) -> Bitmap {
+    debug_assert!(anchors.is_sorted(), "anchors ascend (anchor_voxels, coarse::parents)");
     let voxels: Vec<u32> = region.ones().map(|v| v as u32).collect();
     let solid = || cache.solid(floor);
     match plane::flat_slab(&cache.geom, &voxels) {
@@ -698,11 +699,7 @@ fn by_structure(cache: &FeatureCache, floor: f32, region: Bitmap, anchors: &[u32
             let stroked = anchor::near_anchors(&region, anchors, anchor::radius(cache));
             let region = beside::without_neighbours(&cache.geom, &solid(), region, &stroked);
             match cache.up {
-                Some(up) => {
-                    let mut anchors = anchors.to_vec();
-                    anchors.sort_unstable();
-                    footing::off_the_ground(&cache.geom, &solid(), region, up, &anchors)
-                }
+                Some(up) => footing::off_the_ground(&cache.geom, &solid(), region, up, anchors),
                 None => region,
             }
         }
