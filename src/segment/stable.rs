@@ -77,25 +77,20 @@ fn flood(cache: &FeatureCache, dist: &mut StrokeDistances, seed: &Bitmap, floor:
     // The grower's 3×3×3 neighbourhood (its spatial weights are unused).
     let offs = Offsets::new(cache.geom.res, &GrowParams::default());
     let mut touched = Bitmap::new(cache.geom.res);
-    // f32 keys ≥ 0 order like their bits.
-    let mut heap: BinaryHeap<Reverse<(u32, u32)>> = BinaryHeap::new();
+    let mut queue = BucketQueue::new(t_max);
     for v in seed.ones() {
         if let Some(r) = cache.index.slot(v) {
             touched.set(v, true);
-            heap.push(Reverse((dist.get(cache, r).to_bits(), v as u32)));
+            queue.push(dist.get(cache, r), v as u32);
         }
     }
     let mut order = Vec::new();
     // Voxels whose key equals the level being flooded: a neighbour no
     // farther than the current bottleneck gets exactly that key, so it is
-    // flooded now, without a trip through the heap (inside an object most
+    // flooded now, without a trip through the queue (inside an object most
     // voxels are; the order among equal keys changes nothing).
     let mut level: Vec<u32> = vec![];
-    while let Some(Reverse((key, v))) = heap.pop() {
-        let b = f32::from_bits(key);
-        if b > t_max {
-            break;
-        }
+    while let Some((b, v)) = queue.pop() {
         level.push(v);
         while let Some(v) = level.pop() {
             order.push((b, v));
@@ -117,12 +112,79 @@ fn flood(cache: &FeatureCache, dist: &mut StrokeDistances, seed: &Bitmap, floor:
                 if d <= b {
                     level.push(n as u32);
                 } else {
-                    heap.push(Reverse((d.to_bits(), n as u32)));
+                    queue.push(d, n as u32);
                 }
             });
         }
     }
     order
+}
+
+/// A monotone priority queue of voxels keyed by distances in [0, `t_max`]
+/// (keys above it are dropped: the flood stops there): the key range cut
+/// into [`BUCKETS`] buckets, the bucket being flooded kept as a binary heap,
+/// later ones as plain lists. A key pushed is never below the last popped
+/// (the flood's keys never decrease), so it lands in the current bucket or
+/// a later one. Pops come out in the exact order of one binary heap over
+/// everything, but each costs a sift through the current bucket's few
+/// thousand voxels rather than through the whole flood's (on lego's
+/// strokes 160k seeds: the heap's pops were a third of the flood's time).
+struct BucketQueue {
+    scale: f32,
+    t_max: f32,
+    current: usize,
+    heap: BinaryHeap<Reverse<(u32, u32)>>,
+    later: Vec<Vec<(u32, u32)>>,
+}
+
+/// Buckets across the flood's key range (0.0015 wide at `t_max` 1.5).
+const BUCKETS: usize = 1024;
+
+impl BucketQueue {
+    fn new(t_max: f32) -> Self {
+        BucketQueue {
+            scale: BUCKETS as f32 / t_max.max(f32::MIN_POSITIVE),
+            t_max,
+            current: 0,
+            heap: BinaryHeap::new(),
+            later: vec![vec![]; BUCKETS],
+        }
+    }
+    /// Non-decreasing in `key`, so the buckets keep the keys' order.
+    fn bucket(&self, key: f32) -> usize {
+        ((key * self.scale) as usize).min(BUCKETS - 1)
+    }
+    /// Queues voxel `v` at distance `key` (≥ 0; f32 keys ≥ 0 order like
+    /// their bits), unless it is past `t_max`.
+    fn push(&mut self, key: f32, v: u32) {
+        if !(key <= self.t_max) {
+            return;
+        }
+        // -0.0 would order after every positive key.
+        let key = key.max(0.0) + 0.0;
+        let b = self.bucket(key);
+        debug_assert!(b >= self.current, "keys pushed never go below the last popped");
+        if b <= self.current {
+            self.heap.push(Reverse((key.to_bits(), v)));
+        } else {
+            self.later[b].push((key.to_bits(), v));
+        }
+    }
+    /// The voxel with the smallest key, and that key.
+    fn pop(&mut self) -> Option<(f32, u32)> {
+        loop {
+            if let Some(Reverse((key, v))) = self.heap.pop() {
+                return Some((f32::from_bits(key), v));
+            }
+            let next = (self.current + 1..BUCKETS).find(|&b| !self.later[b].is_empty())?;
+            self.current = next;
+            // Heapify in place (linear), reusing the empty heap's buffer.
+            let mut buf = std::mem::take(&mut self.heap).into_vec();
+            buf.extend(self.later[next].drain(..).map(Reverse));
+            self.later[next] = vec![];
+            self.heap = BinaryHeap::from(buf);
+        }
+    }
 }
 
 /// The threshold at which the region's relative growth over ±δ is smallest,
@@ -256,6 +318,42 @@ mod tests {
             assert!(want.len() > seed.count(), "the flood must grow past the seeds");
             assert_eq!(got, want, "theta {theta}, t_max {t_max}");
         }
+    }
+
+    #[test]
+    fn the_bucket_queue_pops_in_the_order_of_one_heap() {
+        // Seeds anywhere in [0, 2] (those past t_max dropped), then each
+        // pop pushes up to three keys no smaller than the one popped, some
+        // in the same bucket, some equal, some past t_max.
+        let t_max = 1.5f32;
+        let mut rng = crate::util::SplitMix64::new(7);
+        let mut queue = BucketQueue::new(t_max);
+        let mut heap = BinaryHeap::new();
+        let mut push = |q: &mut BucketQueue, h: &mut BinaryHeap<Reverse<(u32, u32)>>, key: f32, v: u32| {
+            q.push(key, v);
+            if key <= t_max {
+                h.push(Reverse((key.to_bits(), v)));
+            }
+        };
+        for v in 0..2000u32 {
+            let key = 2.0 * rng.below(1_000_000) as f32 / 1e6;
+            push(&mut queue, &mut heap, key, v);
+        }
+        let mut next = 2000u32;
+        let mut popped = 0;
+        while let Some(Reverse((bits, want))) = heap.pop() {
+            let (key, got) = queue.pop().expect("the queue empties with the heap");
+            assert_eq!((key.to_bits(), got), (bits, want), "pop {popped}");
+            popped += 1;
+            if next < 20_000 {
+                for step in [0.0, 1e-4, 0.01 * rng.below(100) as f32] {
+                    push(&mut queue, &mut heap, key + step, next);
+                    next += 1;
+                }
+            }
+        }
+        assert_eq!(queue.pop(), None);
+        assert!(popped > 10_000, "{popped}");
     }
 
     #[test]
