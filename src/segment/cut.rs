@@ -116,6 +116,12 @@ pub struct CutInput<'a> {
     /// The solid voxels the cut may label object (every other voxel is
     /// background), ascending.
     pub domain: &'a [u32],
+    /// The domain voxels the graph labels, when not all of them: the rest
+    /// stay background and feed the background models, but are not in the
+    /// graph ([`super::stable::StableRegion::before_flood`]; edges from
+    /// graph voxels to them are left out: they lie a band's width inside
+    /// what the flood ran into).
+    pub graph: Option<&'a Bitmap>,
     /// Each domain voxel's colour, or empty for features only.
     pub colours: &'a [Vec3],
     /// Each domain voxel's distance to the object's centres (the stroke's,
@@ -173,9 +179,15 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     let (under, under_negative) = (flags(input.hard), flags(input.background_hard));
     // A stroke covers a few hundred voxels of one or two materials.
     let (col_obj, _) = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, None);
-    let edges = neighbour_edges(cache, input.domain, &rows, &node_of_row, input.colours, p);
+    // The graph's nodes (domain indices) and each domain node's graph index.
+    let nodes: Vec<usize> = match input.graph {
+        Some(g) => (0..n).filter(|&i| g.get(input.domain[i] as usize)).collect(),
+        None => (0..n).collect(),
+    };
+    let sub = Subgraph::new(cache, input, &rows, &nodes);
+    let edges = neighbour_edges(cache, &sub.domain, &sub.rows, &sub.node_of_row, &sub.colours, p);
     t.edges_ms += ms_since(t0);
-    t.nodes += n;
+    t.nodes += nodes.len();
     t.pairs += edges.len();
     let mut region: Vec<bool> = input.domain.iter().map(|&v| input.region.get(v as usize)).collect();
     let mut changed = false;
@@ -202,7 +214,7 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         };
         let t0 = Instant::now();
         let bg = CentreSet::new(background);
-        let d_bg = bg.min_distances(cache, &rows);
+        let d_bg = bg.min_distances(cache, &sub.rows);
         t.distance_ms += ms_since(t0);
         let t0 = Instant::now();
         let warm = last_colours.take();
@@ -214,21 +226,32 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         // region terms and resume from the last round's flow (voxels under
         // the strokes stay tied to their side).
         let g = graph.get_or_insert_with(|| {
-            let mut g = Graph::from_edges(n, &edges);
-            for i in (0..n).filter(|&i| under_negative[i] || under[i]) {
+            let mut g = Graph::from_edges(nodes.len(), &edges);
+            for (k, &i) in nodes
+                .iter()
+                .enumerate()
+                .filter(|&(_, &i)| under_negative[i] || under[i])
+            {
                 let hard = if under_negative[i] { (0.0, HARD) } else { (HARD, 0.0) };
-                g.set_terminal(i, hard.0, hard.1);
+                g.set_terminal(k, hard.0, hard.1);
             }
             g
         });
-        for i in (0..n).filter(|&i| !under_negative[i] && !under[i]) {
+        for (k, &i) in nodes
+            .iter()
+            .enumerate()
+            .filter(|&(_, &i)| !under_negative[i] && !under[i])
+        {
             // Colour moves the balance by at most `colour_margin`: it
             // decides where the features hesitate, not against them.
             let shift = (col_obj[i] - col_bg[i]).clamp(-p.colour_margin, p.colour_margin);
-            g.set_terminal(i, d_bg[i] + (-shift).max(0.0), d_obj[i] + shift.max(0.0));
+            g.set_terminal(k, d_bg[k] + (-shift).max(0.0), d_obj[i] + shift.max(0.0));
         }
         g.maxflow();
-        let next: Vec<bool> = (0..n).map(|i| g.is_source(i)).collect();
+        let mut next = vec![false; n];
+        for (k, &i) in nodes.iter().enumerate() {
+            next[i] = g.is_source(k);
+        }
         t.flow_ms += ms_since(t0);
         if next == region {
             break;
@@ -244,6 +267,32 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         out.set(v as usize, true);
     }
     Some(out)
+}
+
+/// The graph's part of a cut's domain, indexed by graph node: its voxels,
+/// cache rows and colours, and each cache row's graph node (`u32::MAX`
+/// where none).
+struct Subgraph {
+    domain: Vec<u32>,
+    rows: Vec<usize>,
+    colours: Vec<Vec3>,
+    node_of_row: Vec<u32>,
+}
+
+impl Subgraph {
+    fn new(cache: &FeatureCache, input: &CutInput, rows: &[usize], nodes: &[usize]) -> Self {
+        let mut node_of_row = vec![u32::MAX; cache.len()];
+        for (k, &i) in nodes.iter().enumerate() {
+            node_of_row[rows[i]] = k as u32;
+        }
+        let pick = |i: &usize| input.colours.get(*i).copied();
+        Subgraph {
+            domain: nodes.iter().map(|&i| input.domain[i]).collect(),
+            rows: nodes.iter().map(|&i| rows[i]).collect(),
+            colours: nodes.iter().filter_map(pick).collect(),
+            node_of_row,
+        }
+    }
 }
 
 /// The cache rows of domain voxels (which are solid).
@@ -519,6 +568,7 @@ mod tests {
             let input = CutInput {
                 cache: &cache,
                 domain: &domain,
+                graph: None,
                 colours: &colours,
                 object_distance: &zeros,
                 region: &region,
@@ -557,6 +607,7 @@ mod tests {
         let input = CutInput {
             cache: &cache,
             domain: &domain,
+            graph: None,
             colours: &colours,
             object_distance: &object_distance,
             region: &region,
@@ -596,6 +647,24 @@ mod tests {
             xs(&refine(&input, &q, 0, &mut CutTimings::default()).unwrap(), res),
             (0..14).collect()
         );
+        // A graph over part of the domain: the same region where the rest
+        // lies past the boundary, which it only feeds as background (it
+        // still counts in the background model: the same centres, the
+        // same cut); nothing outside the graph is selected.
+        let whole = Bitmap::from_ones(res, &domain);
+        let near = Bitmap::from_fn(res, |v| whole.get(v) && v % res[0] < 20);
+        for q in [p, q] {
+            let want = refine(&input, &q, 0, &mut CutTimings::default()).unwrap();
+            for graph in [&whole, &near] {
+                let part = CutInput {
+                    graph: Some(graph),
+                    ..input
+                };
+                let mut t = CutTimings::default();
+                assert_eq!(refine(&part, &q, 0, &mut t).unwrap(), want);
+                assert_eq!(t.nodes, graph.count(), "the graph's nodes");
+            }
+        }
         // No background left to cut against: nothing to refine.
         let all = Bitmap::from_fn(res, |_| true);
         let input = CutInput { region: &all, ..input };
