@@ -400,7 +400,7 @@ mod tests {
         let mut rng = crate::util::SplitMix64::new(7);
         let mut queue = BucketQueue::new(t_max);
         let mut heap = BinaryHeap::new();
-        let mut push = |q: &mut BucketQueue, h: &mut BinaryHeap<Reverse<(u32, u32)>>, key: f32, v: u32| {
+        let push = |q: &mut BucketQueue, h: &mut BinaryHeap<Reverse<(u32, u32)>>, key: f32, v: u32| {
             q.push(key, v);
             if key <= t_max {
                 h.push(Reverse((key.to_bits(), v)));
