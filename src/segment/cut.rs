@@ -46,6 +46,7 @@ use crate::util::ms_since;
 use glam::Vec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
 use std::time::Instant;
 
 /// Settings of the cut (0 rounds: no refinement).
@@ -179,12 +180,8 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     let (under, under_negative) = (flags(input.hard), flags(input.background_hard));
     // A stroke covers a few hundred voxels of one or two materials.
     let (col_obj, _) = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, None);
-    // The graph's nodes (domain indices) and each domain node's graph index.
-    let nodes: Vec<usize> = match input.graph {
-        Some(g) => (0..n).filter(|&i| g.get(input.domain[i] as usize)).collect(),
-        None => (0..n).collect(),
-    };
-    let sub = Subgraph::new(cache, input, &rows, &nodes);
+    let sub = Subgraph::new(input, &rows, &node_of_row);
+    let nodes = &sub.nodes;
     let edges = neighbour_edges(cache, &sub.domain, &sub.rows, &sub.node_of_row, &sub.colours, p);
     t.edges_ms += ms_since(t0);
     t.nodes += nodes.len();
@@ -269,28 +266,45 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     Some(out)
 }
 
-/// The graph's part of a cut's domain, indexed by graph node: its voxels,
-/// cache rows and colours, and each cache row's graph node (`u32::MAX`
-/// where none).
-struct Subgraph {
-    domain: Vec<u32>,
-    rows: Vec<usize>,
-    colours: Vec<Vec3>,
-    node_of_row: Vec<u32>,
+/// The graph's part of a cut's domain ([`CutInput::graph`]), indexed by
+/// graph node: each node's domain index, its voxel, cache row and colour,
+/// and each cache row's node (`u32::MAX` where none); the domain's own
+/// arrays, borrowed, when the graph is all of it.
+struct Subgraph<'a> {
+    nodes: Vec<usize>,
+    domain: Cow<'a, [u32]>,
+    rows: Cow<'a, [usize]>,
+    colours: Cow<'a, [Vec3]>,
+    node_of_row: Cow<'a, [u32]>,
 }
 
-impl Subgraph {
-    fn new(cache: &FeatureCache, input: &CutInput, rows: &[usize], nodes: &[usize]) -> Self {
-        let mut node_of_row = vec![u32::MAX; cache.len()];
+impl<'a> Subgraph<'a> {
+    /// `rows` and `node_of_row`: the domain's cache rows and each cache
+    /// row's domain index.
+    fn new(input: &CutInput<'a>, rows: &'a [usize], node_of_row: &'a [u32]) -> Self {
+        let n = input.domain.len();
+        let Some(graph) = input.graph else {
+            return Subgraph {
+                nodes: (0..n).collect(),
+                domain: Cow::Borrowed(input.domain),
+                rows: Cow::Borrowed(rows),
+                colours: Cow::Borrowed(input.colours),
+                node_of_row: Cow::Borrowed(node_of_row),
+            };
+        };
+        let nodes: Vec<usize> = (0..n).filter(|&i| graph.get(input.domain[i] as usize)).collect();
+        let mut of_row = vec![u32::MAX; node_of_row.len()];
         for (k, &i) in nodes.iter().enumerate() {
-            node_of_row[rows[i]] = k as u32;
+            of_row[rows[i]] = k as u32;
         }
-        let pick = |i: &usize| input.colours.get(*i).copied();
+        // No colours (features only) stay none.
+        let colours = nodes.iter().filter_map(|&i| input.colours.get(i).copied()).collect();
         Subgraph {
-            domain: nodes.iter().map(|&i| input.domain[i]).collect(),
-            rows: nodes.iter().map(|&i| rows[i]).collect(),
-            colours: nodes.iter().filter_map(pick).collect(),
-            node_of_row,
+            domain: Cow::Owned(nodes.iter().map(|&i| input.domain[i]).collect()),
+            rows: Cow::Owned(nodes.iter().map(|&i| rows[i]).collect()),
+            colours: Cow::Owned(colours),
+            node_of_row: Cow::Owned(of_row),
+            nodes,
         }
     }
 }

@@ -550,9 +550,8 @@ fn cut_region(
     if p.cut.rounds == 0 || seeds.hard.is_empty() {
         return None;
     }
-    let domain: &[u32] = &s.reached;
-    let colours = voxel_colours(field, cache, domain);
-    let object_distance = dist.of_rows(cache, &cut::rows_of(cache, domain));
+    let colours = voxel_colours(field, cache, &s.reached);
+    let object_distance = dist.of_rows(cache, &cut::rows_of(cache, &s.reached));
     let not_background: Vec<bool> = match seeds.surface {
         Some(table) => colours.iter().map(|&c| table.shows(c)).collect(),
         None => vec![],
@@ -564,7 +563,7 @@ fn cut_region(
     };
     let mut input = cut::CutInput {
         cache,
-        domain,
+        domain: &s.reached,
         graph: s.before_flood.as_ref(),
         colours: &colours,
         object_distance: &object_distance,
@@ -575,12 +574,12 @@ fn cut_region(
         unlike,
         not_background: &not_background,
     };
-    let background = (domain.iter().zip(&object_distance))
+    let background = (s.reached.iter().zip(&object_distance))
         .filter(|&(&v, &d)| d > unlike && !s.region.get(v as usize))
         .count();
     let like_stroke: Vec<bool>;
     let mut against_colours = false;
-    if background * NO_BACKGROUND < domain.len() {
+    if background * NO_BACKGROUND < s.reached.len() {
         let unlike = cut::unlike_colours(&input, p.kmeans_seed);
         let share = unlike.iter().filter(|&&u| u).count() as f32 / unlike.len().max(1) as f32;
         if share > MOSTLY_UNLIKE {
@@ -598,7 +597,7 @@ fn cut_region(
         Some(cut) => cut,
         // A drifting surface whose whole flood looks like the stroke, in a
         // scene where colour tells things apart: the flood is the surface.
-        None if !not_background.is_empty() => Bitmap::from_ones(cache.geom.res, domain),
+        None if !not_background.is_empty() => Bitmap::from_ones(cache.geom.res, &s.reached),
         None => return None,
     };
     let region = anchor::joined_seeds(&cut, seeds.anchors, anchor::radius(cache))?;

@@ -196,10 +196,9 @@ impl BucketQueue {
             }
             let next = (self.current + 1..BUCKETS).find(|&b| !self.later[b].is_empty())?;
             self.current = next;
-            // Heapify in place (linear), reusing the empty heap's buffer.
+            // Heapify (linear), reusing the empty heap's buffer.
             let mut buf = std::mem::take(&mut self.heap).into_vec();
-            buf.extend(self.later[next].drain(..).map(Reverse));
-            self.later[next] = vec![];
+            buf.extend(std::mem::take(&mut self.later[next]).into_iter().map(Reverse));
             self.heap = BinaryHeap::from(buf);
         }
     }
@@ -209,11 +208,10 @@ impl BucketQueue {
 /// or θ when no threshold is stable (module docs); `keys` are the flood's
 /// bottleneck distances, sorted.
 pub fn stable_threshold(keys: &[f32], theta: f32, p: &StableParams) -> f32 {
-    let count = |t: f32| keys.partition_point(|&b| b <= t) as f32;
+    let count = |t: f32| count_within(keys, t);
     let (lo, hi) = (theta + p.delta, p.t_max - p.delta);
     let mut best = (f32::INFINITY, lo.min(hi).max(theta));
-    let mut t = lo;
-    while t <= hi + 1e-6 {
+    for t in thresholds(theta, p) {
         let growth = (count(t + p.delta) - count(t - p.delta)) / count(t).max(1.0);
         if growth > p.flood_growth {
             break;
@@ -222,7 +220,6 @@ pub fn stable_threshold(keys: &[f32], theta: f32, p: &StableParams) -> f32 {
         if growth < best.0 - 1e-4 {
             best = (growth, t);
         }
-        t += p.step;
     }
     if best.0 > p.max_growth {
         return theta;
@@ -234,16 +231,23 @@ pub fn stable_threshold(keys: &[f32], theta: f32, p: &StableParams) -> f32 {
 /// else: the first threshold t past θ whose region, over the next ±δ,
 /// grows more than [`FLOOD_JUMP`] times; `None` when it never does.
 pub fn flood_level(keys: &[f32], theta: f32, p: &StableParams) -> Option<f32> {
-    let count = |t: f32| keys.partition_point(|&b| b <= t) as f32;
-    let mut t = theta + p.delta;
-    while t <= p.t_max - p.delta + 1e-6 {
-        if count(t + p.delta) > FLOOD_JUMP * count(t - p.delta).max(1.0) {
-            // The jump lies within the last step before t + δ.
-            return Some(t + p.delta - p.step);
-        }
-        t += p.step;
-    }
-    None
+    let count = |t: f32| count_within(keys, t);
+    thresholds(theta, p)
+        .find(|&t| count(t + p.delta) > FLOOD_JUMP * count(t - p.delta).max(1.0))
+        // The jump lies within the last step before t + δ.
+        .map(|t| t + p.delta - p.step)
+}
+
+/// The thresholds the region is looked at: from θ + δ to `t_max` − δ,
+/// `step` apart.
+fn thresholds(theta: f32, p: &StableParams) -> impl Iterator<Item = f32> + '_ {
+    let hi = p.t_max - p.delta + 1e-6;
+    std::iter::successors(Some(theta + p.delta), move |&t| Some(t + p.step)).take_while(move |&t| t <= hi)
+}
+
+/// How many of the sorted `keys` are at most `t`.
+fn count_within(keys: &[f32], t: f32) -> f32 {
+    keys.partition_point(|&b| b <= t) as f32
 }
 
 /// A flood into something else, for [`flood_level`]: the region grows this
