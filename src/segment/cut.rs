@@ -179,8 +179,18 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     };
     let (under, under_negative) = (flags(input.hard), flags(input.background_hard));
     // A stroke covers a few hundred voxels of one or two materials.
-    let (col_obj, _) = colour_term(input.colours, &under, 5, kmeans_seed, p.colour_unary, None);
     let sub = Subgraph::new(input, &rows, &node_of_row);
+    // The colour terms are wanted for the graph's nodes only (the domain
+    // past the graph is background whatever they say).
+    let (col_obj, _) = colour_term(
+        input.colours,
+        &under,
+        &sub.colours,
+        5,
+        kmeans_seed,
+        p.colour_unary,
+        None,
+    );
     let nodes = &sub.nodes;
     let edges = neighbour_edges(cache, &sub.domain, &sub.rows, &sub.node_of_row, &sub.colours, p);
     t.edges_ms += ms_since(t0);
@@ -215,7 +225,15 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         t.distance_ms += ms_since(t0);
         let t0 = Instant::now();
         let warm = last_colours.take();
-        let (col_bg, fitted_colours) = colour_term(input.colours, &outside, p.background_k, seed, p.colour_unary, warm);
+        let (col_bg, fitted_colours) = colour_term(
+            input.colours,
+            &outside,
+            &sub.colours,
+            p.background_k,
+            seed,
+            p.colour_unary,
+            warm,
+        );
         last_colours = fitted_colours;
         t.fit_ms += ms_since(t0);
         let t0 = Instant::now();
@@ -241,7 +259,9 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         {
             // Colour moves the balance by at most `colour_margin`: it
             // decides where the features hesitate, not against them.
-            let shift = (col_obj[i] - col_bg[i]).clamp(-p.colour_margin, p.colour_margin);
+            // (No colour terms without colours: features only.)
+            let colour_at = |c: &[f32]| c.get(k).copied().unwrap_or(0.0);
+            let shift = (colour_at(&col_obj) - colour_at(&col_bg)).clamp(-p.colour_margin, p.colour_margin);
             g.set_terminal(k, d_bg[k] + (-shift).max(0.0), d_obj[i] + shift.max(0.0));
         }
         g.maxflow();
@@ -373,7 +393,7 @@ pub fn unlike_colours(input: &CutInput, kmeans_seed: u64) -> Vec<bool> {
         under[i] = h.peek() == Some(&&v);
     }
     // The object colour model `refine` fits (γ 1: plain squared distances).
-    let (distance, centres) = colour_term(input.colours, &under, 5, kmeans_seed, 1.0, None);
+    let (distance, centres) = colour_term(input.colours, &under, input.colours, 5, kmeans_seed, 1.0, None);
     if centres.is_none() {
         return none;
     }
@@ -410,13 +430,15 @@ fn fit(points: &[f32], dim: usize, k: usize, seed: u64, warm: Option<&Centroids>
     }
 }
 
-/// γ times each colour's squared distance to the nearest of at most `k`
-/// K-means centres of the flagged colours (started from `warm` when
-/// given), with those centres; zeros when γ is 0, there are no colours or
-/// nothing is flagged.
+/// γ times the squared distance of each of `measured` to the nearest of at
+/// most `k` K-means centres of the flagged `colours` (started from `warm`
+/// when given), with those centres; zeros when γ is 0, there are no colours
+/// or nothing is flagged (none when `measured` is empty).
+#[allow(clippy::too_many_arguments)]
 fn colour_term(
     colours: &[Vec3],
     flags: &[bool],
+    measured: &[Vec3],
     k: usize,
     seed: u64,
     gamma: f32,
@@ -424,10 +446,10 @@ fn colour_term(
 ) -> (Vec<f32>, Option<Centroids>) {
     if gamma > 0.0 && !colours.is_empty() {
         if let Some(c) = colour_centres(colours, flags, k, seed, warm.as_ref()) {
-            return (colour_distances(colours, &c, gamma), Some(c));
+            return (colour_distances(measured, &c, gamma), Some(c));
         }
     }
-    (vec![0.0; flags.len()], None)
+    (vec![0.0; measured.len()], None)
 }
 
 /// γ times each colour's squared distance to the nearest centre.
