@@ -188,6 +188,17 @@ impl StrokeDistances {
         self.set = CentreSet::new(all);
     }
 
+    /// Measures, in parallel, every row with σ above `floor` not measured
+    /// yet (the same values [`Self::get`] would give one by one).
+    pub fn measure_solid(&mut self, cache: &FeatureCache, floor: f32) {
+        let missing: Vec<usize> = (0..self.d.len())
+            .filter(|&r| self.d[r].is_nan() && cache.sigma[r] > floor)
+            .collect();
+        for (r, d) in missing.iter().zip(self.set.min_distances(cache, &missing)) {
+            self.d[*r] = d;
+        }
+    }
+
     /// The distances of `rows`, those not measured yet measured in parallel
     /// (and kept).
     pub fn of_rows(&mut self, cache: &FeatureCache, rows: &[usize]) -> Vec<f32> {
