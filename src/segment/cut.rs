@@ -208,8 +208,18 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         t.rounds += 1;
         let t0 = Instant::now();
         let outside: Vec<bool> = (0..n).map(|i| (!region[i] && unlike[i]) || under_negative[i]).collect();
-        let fitted = background_centres(cache, &rows, &outside, p.background_k, seed, last_fit.as_ref());
+        // The feature and colour models side by side: each K-means is a
+        // few thousand rows, too few to keep both cores busy on its own.
+        let warm = last_colours.take();
+        let (fitted, (col_bg, fitted_colours)) = rayon::join(
+            || background_centres(cache, &rows, &outside, p.background_k, seed, last_fit.as_ref()),
+            || {
+                let (k, gamma) = (p.background_k, p.colour_unary);
+                colour_term(input.colours, &outside, &sub.colours, k, seed, gamma, warm)
+            },
+        );
         last_fit = fitted.clone();
+        last_colours = fitted_colours;
         t.fit_ms += ms_since(t0);
         // No background left to fit: nothing to cut against (after a round
         // that changed the region, keep that round's result).
@@ -223,19 +233,6 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         let bg = CentreSet::new(background);
         let d_bg = bg.min_distances(cache, &sub.rows);
         t.distance_ms += ms_since(t0);
-        let t0 = Instant::now();
-        let warm = last_colours.take();
-        let (col_bg, fitted_colours) = colour_term(
-            input.colours,
-            &outside,
-            &sub.colours,
-            p.background_k,
-            seed,
-            p.colour_unary,
-            warm,
-        );
-        last_colours = fitted_colours;
-        t.fit_ms += ms_since(t0);
         let t0 = Instant::now();
         // The first round builds the graph; later ones change only the
         // region terms and resume from the last round's flow (voxels under
