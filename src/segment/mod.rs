@@ -421,7 +421,12 @@ fn segment_anchored(
         GrowthRule::Paper => p.seed_floor,
         _ => p.sigma_floor(cache.voxel_size),
     };
-    let (mut region, mut dist) = nnfm::nnfm_seed_with_distances(cache, &centres, p.theta, floor);
+    // The stable flood will want nearly every solid row's distance.
+    let stable = p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0);
+    let (mut region, mut dist) = match stable {
+        true => nnfm::nnfm_seed_measuring_all(cache, &centres, p.theta, floor),
+        false => nnfm::nnfm_seed_with_distances(cache, &centres, p.theta, floor),
+    };
     let anchors = stroke.anchors;
     if let Some(joined) = anchor::joined_seeds(&region, anchors, anchor::radius(cache)) {
         region = joined;
@@ -429,7 +434,7 @@ fn segment_anchored(
     t.nnfm_ms = ms_since(t0);
     t.seed_voxels = region.count();
     let t0 = Instant::now();
-    if p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0) {
+    if stable {
         let s = stable::stable_region(cache, &mut dist, &region, p.theta, floor, &p.stable);
         t.grow_ms = ms_since(t0);
         t.grow_steps = 1;

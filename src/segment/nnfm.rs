@@ -31,10 +31,7 @@ impl Prune {
         let (k, dim) = (centres.len(), centres.dim);
         if dim != channels {
             // Mismatched widths: the exact test alone decides.
-            return Prune {
-                mean: vec![0.0; channels],
-                bound: f32::NEG_INFINITY,
-            };
+            return Prune::none(channels);
         }
         let mut mean = vec![0.0f32; dim];
         for j in 0..k {
@@ -51,12 +48,19 @@ impl Prune {
             - MARGIN;
         Prune { mean, bound }
     }
+    /// A bound that rules nothing out.
+    fn none(channels: usize) -> Self {
+        Prune {
+            mean: vec![0.0; channels],
+            bound: f32::NEG_INFINITY,
+        }
+    }
     /// True when cache row `r` certainly matches no centre. Zero and
     /// non-finite features are never ruled out (the exact test decides).
     #[inline]
     fn rules_out(&self, cache: &FeatureCache, r: usize) -> bool {
         let inv = cache.inv_norm[r];
-        inv > 0.0 && dot8(cache.row(r), &self.mean) * inv < self.bound
+        self.bound > f32::NEG_INFINITY && inv > 0.0 && dot8(cache.row(r), &self.mean) * inv < self.bound
     }
 }
 
@@ -92,13 +96,41 @@ pub fn nnfm_seed_with_distances(
     theta: f32,
     floor: f32,
 ) -> (Bitmap, StrokeDistances) {
+    seed_measuring(cache, centres, theta, floor, true)
+}
+
+/// [`nnfm_seed_with_distances`] that measures every row with σ above
+/// `floor`, for the stable flood, which reaches most of a scene: one
+/// blocked pass instead of the bound's dot product for every row and a
+/// second pass over the rows it ruled out ([`StrokeDistances::measure_solid`]).
+pub fn nnfm_seed_measuring_all(
+    cache: &FeatureCache,
+    centres: &Centroids,
+    theta: f32,
+    floor: f32,
+) -> (Bitmap, StrokeDistances) {
+    seed_measuring(cache, centres, theta, floor, false)
+}
+
+/// The seed and distances, with or without the bound that skips rows
+/// matching no centre.
+fn seed_measuring(
+    cache: &FeatureCache,
+    centres: &Centroids,
+    theta: f32,
+    floor: f32,
+    bound: bool,
+) -> (Bitmap, StrokeDistances) {
     let mut bits = Bitmap::new(cache.geom.res);
     let mut dist = StrokeDistances::new(cache, centres.clone());
     if centres.is_empty() {
         return (bits, dist);
     }
     let norms = &dist.set.norms;
-    let prune = Prune::new(centres, norms, theta, cache.channels);
+    let prune = match bound {
+        true => Prune::new(centres, norms, theta, cache.channels),
+        false => Prune::none(cache.channels),
+    };
     let test = Exact { cache, centres, norms };
     const CHUNK: usize = 4096;
     let hits: Vec<Vec<u32>> = dist

@@ -293,7 +293,8 @@ pub fn stable_region(
     // the realistic tabletop's 493k voxels, 30–130k of them ruled out by
     // the NNFM pass's bound and so not measured): measuring every solid
     // voxel first, on every core, took its growth stage from 52–79 to
-    // 37–50 ms (lego: 0.7 ms more, its flood stays on the model).
+    // 37–50 ms (lego: 0.7 ms more, its flood stays on the model). A seed
+    // from [`super::nnfm::nnfm_seed_measuring_all`] has them all already.
     dist.measure_solid(cache, floor);
     let order = flood(cache, dist, seed, floor, p.t_max);
     let keys: Vec<f32> = order.iter().map(|o| o.0).collect();
