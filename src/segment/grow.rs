@@ -167,6 +167,19 @@ impl Offsets {
             }
         }
     }
+    /// The in-grid neighbours of `v` (centre included) into `out`, how many
+    /// there are: for loops whose body is too large to inline into
+    /// [`Self::for_each`]'s two paths (the stable flood's was called once
+    /// per neighbour).
+    #[inline]
+    pub(super) fn fill(&self, v: usize, out: &mut [usize; 27]) -> usize {
+        let mut n = 0;
+        self.for_each(v, |_, u| {
+            out[n] = u;
+            n += 1;
+        });
+        n
+    }
 }
 
 #[inline]

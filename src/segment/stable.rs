@@ -111,13 +111,15 @@ fn flood(cache: &FeatureCache, dist: &mut StrokeDistances, seed: &Bitmap, floor:
     // flooded now, without a trip through the queue (inside an object most
     // voxels are; the order among equal keys changes nothing).
     let mut level: Vec<u32> = vec![];
+    let mut hood = [0usize; 27];
     while let Some((b, v)) = queue.pop() {
         level.push(v);
         while let Some(v) = level.pop() {
             order.push((b, v));
-            offs.for_each(v as usize, |_, n| {
+            let count = offs.fill(v as usize, &mut hood);
+            for &n in &hood[..count] {
                 if !open.get(n) {
-                    return;
+                    continue;
                 }
                 open.set(n, false);
                 let r = cache.index.slot(n).expect("solid voxels are cached");
@@ -129,7 +131,7 @@ fn flood(cache: &FeatureCache, dist: &mut StrokeDistances, seed: &Bitmap, floor:
                 } else {
                     queue.push(d, n as u32);
                 }
-            });
+            }
         }
     }
     order
