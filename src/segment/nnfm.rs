@@ -677,6 +677,17 @@ mod tests {
                         assert!(measured || cache.sigma[r] <= floor || prune_of(&centres, theta).rules_out(&cache, r));
                         assert_eq!(dist.get(&cache, r).to_bits(), set.min_distance(&cache, r).to_bits());
                     }
+                    // Without the bound: the same seed, and every row above
+                    // the floor measured already, to the same bits.
+                    let (all_seed, all) = nnfm_seed_measuring_all(&cache, &centres, theta, floor);
+                    assert_eq!(all_seed, want, "k {k} theta {theta}, measuring all");
+                    for r in 0..cache.len() {
+                        let d = all.d[r];
+                        match cache.sigma[r] > floor {
+                            true => assert_eq!(d.to_bits(), set.min_distance(&cache, r).to_bits()),
+                            false => assert!(d.is_nan(), "rows below the floor stay unmeasured"),
+                        }
+                    }
                 }
             }
         }
