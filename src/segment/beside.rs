@@ -265,8 +265,13 @@ fn column(geom: &GridGeom, region: &Bitmap, resting: &[u32], cells: &Cells, map:
     let mut out: Vec<u32> = resting.to_vec();
     while let Some(v) = stack.pop() {
         geom.neighbours26(v, |n| {
-            if region.get(n) && !taken.get(n) && map.get(cells.of(geom.point_of(n))).is_some_and(|(_, f)| f == id) {
-                taken.set(n, true);
+            if !region.get(n) || taken.get(n) {
+                return;
+            }
+            // Looked at once: a voxel over another footprint's cells would
+            // otherwise be projected again from each of its neighbours.
+            taken.set(n, true);
+            if map.get(cells.of(geom.point_of(n))).is_some_and(|(_, f)| f == id) {
                 out.push(n as u32);
                 stack.push(n);
             }
@@ -292,7 +297,8 @@ fn standing_part(geom: &GridGeom, region: &Bitmap, column: &[u32], own: impl Fn(
 
 /// Faces between `column` (ascending) and the rest of `region`.
 fn faces_to_rest(geom: &GridGeom, region: &Bitmap, column: &[u32]) -> usize {
-    let inside = |n: usize| column.binary_search(&(n as u32)).is_ok();
+    let inside = Bitmap::from_ones(geom.res, column);
+    let inside = |n: usize| inside.get(n);
     column
         .iter()
         .map(|&v| {

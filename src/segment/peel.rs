@@ -35,13 +35,20 @@ pub fn peel_support(
 ) -> Bitmap {
     let colour = |v: usize| cache.index.slot(v).map(|r| cache.colours[r]);
     for _ in 0..rounds {
+        let outside = |n: usize| !region.get(n) && solid.get(n);
         let rim_of_support = |v: usize| {
+            // The rim first: two bitmap reads per face rule out the
+            // region's inside (most of a large region) before its colour
+            // is looked up (the palette test was most of this rule's time
+            // on lego's whole-model region).
+            if !super::flood::face_neighbours(&cache.geom, v).any(outside) {
+                return false;
+            }
             let Some(c) = colour(v).filter(|&c| !shown(c)) else {
                 return false;
             };
-            super::flood::face_neighbours(&cache.geom, v).any(|n| {
-                !region.get(n) && solid.get(n) && colour(n).is_some_and(|o| (o - c).length_squared() <= SAME_COLOUR)
-            })
+            super::flood::face_neighbours(&cache.geom, v)
+                .any(|n| outside(n) && colour(n).is_some_and(|o| (o - c).length_squared() <= SAME_COLOUR))
         };
         let peeled: Vec<usize> = region.ones().filter(|&v| rim_of_support(v)).collect();
         if peeled.is_empty() {
