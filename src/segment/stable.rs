@@ -174,7 +174,7 @@ impl BucketQueue {
     /// Queues voxel `v` at distance `key` (≥ 0; f32 keys ≥ 0 order like
     /// their bits), unless it is past `t_max`.
     fn push(&mut self, key: f32, v: u32) {
-        if !(key <= self.t_max) {
+        if key.is_nan() || key > self.t_max {
             return;
         }
         // -0.0 would order after every positive key.
