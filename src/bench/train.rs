@@ -135,7 +135,7 @@ pub fn run_and_measure(trainer: &mut Trainer, mut on_step: impl FnMut(&StepStats
         };
         row.iters += 1;
         row.rays += s.rays as u64;
-        row.samples += s.samples as u64;
+        row.samples += s.samples;
         row.seconds += s.seconds as f64;
         row.update_seconds += s.update_seconds as f64;
         row.last_psnr = s.psnr;

@@ -160,7 +160,7 @@ pub fn overlay_config(c: TrainConfig, p: &std::path::Path) -> Result<TrainConfig
         }
         base.insert(k.clone(), val.clone());
     }
-    Ok(serde_json::from_value(v).with_context(|| format!("{}: bad training settings", p.display()))?)
+    serde_json::from_value(v).with_context(|| format!("{}: bad training settings", p.display()))
 }
 
 /// Training settings: the preset for the capture's kind and image size

@@ -186,7 +186,7 @@ impl Bitmap {
     }
     fn clear_tail(&mut self) {
         let n = self.len();
-        if n % 64 != 0 {
+        if !n.is_multiple_of(64) {
             if let Some(last) = self.words.last_mut() {
                 *last &= (1u64 << (n % 64)) - 1;
             }
@@ -198,7 +198,7 @@ impl Bitmap {
     }
     pub fn from_bytes(res: [usize; 3], bytes: &[u8]) -> Result<Self> {
         crate::ensure!(
-            bytes.len() % 8 == 0,
+            bytes.len().is_multiple_of(8),
             "bitmap byte length {} is not a multiple of 8",
             bytes.len()
         );

@@ -230,7 +230,7 @@ impl Model {
 
     fn clear_tail(&mut self) {
         let n = self.len();
-        if n % 64 != 0 {
+        if !n.is_multiple_of(64) {
             let last = self.active.len() - 1;
             self.active[last] &= (1u64 << (n % 64)) - 1;
         }

@@ -216,7 +216,7 @@ pub fn dense_adam_step(
 ) {
     let n = params.len();
     let mut all = vec![u64::MAX; n.div_ceil(64)];
-    if n % 64 != 0 {
+    if !n.is_multiple_of(64) {
         if let Some(last) = all.last_mut() {
             *last = (1u64 << (n % 64)) - 1;
         }

@@ -376,7 +376,7 @@ fn patch_grid(tokens: usize, dims: [u32; 2]) -> Option<(usize, usize, usize)> {
     for extra in 0..=8.min(tokens) {
         let n = tokens - extra;
         let best = (1..=n)
-            .filter(|h| n % h == 0)
+            .filter(|h| n.is_multiple_of(*h))
             .map(|h| (n / h, h))
             .map(|(w, h)| ((w as f64 / h as f64 / aspect).ln().abs(), w, h))
             .min_by(|a, b| a.0.total_cmp(&b.0));
