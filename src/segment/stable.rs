@@ -22,8 +22,9 @@
 //!   fern: 3–4 % per 0.1 from θ up to the flood into the planter at 1.4),
 //!   and the seeds are kept as they are.
 //!
-//! d comes from the stroke's NNFM pass ([`StrokeDistances`]), which measured
-//! most voxels; the others are measured, in parallel, before the flood.
+//! d comes from the stroke's NNFM pass ([`StrokeDistances`]), which measures
+//! every solid voxel for this rule; the others are measured when the flood
+//! first touches them.
 
 use super::grow::{GrowParams, Offsets};
 use super::nnfm::StrokeDistances;
@@ -282,7 +283,10 @@ fn band_around(cache: &FeatureCache, core: &[(f32, u32)], reached: &Bitmap, step
 }
 
 /// Grows `seed` (NNFM seeds at θ of the stroke whose distances `dist`
-/// holds, on solid voxels) to the stable region.
+/// holds, on solid voxels) to the stable region. The flood reads the
+/// distance of nearly every solid voxel: `dist` from
+/// [`super::nnfm::nnfm_seed_measuring_all`] has them already, others are
+/// measured as the flood reaches them.
 pub fn stable_region(
     cache: &FeatureCache,
     dist: &mut StrokeDistances,
@@ -291,13 +295,6 @@ pub fn stable_region(
     floor: f32,
     p: &StableParams,
 ) -> StableRegion {
-    // The flood runs on one core and reaches most of a scene (260–340k of
-    // the realistic tabletop's 493k voxels, 30–130k of them ruled out by
-    // the NNFM pass's bound and so not measured): measuring every solid
-    // voxel first, on every core, took its growth stage from 52–79 to
-    // 37–50 ms (lego: 0.7 ms more, its flood stays on the model). A seed
-    // from [`super::nnfm::nnfm_seed_measuring_all`] has them all already.
-    dist.measure_solid(cache, floor);
     let order = flood(cache, dist, seed, floor, p.t_max);
     let keys: Vec<f32> = order.iter().map(|o| o.0).collect();
     let threshold = stable_threshold(&keys, theta, p);
