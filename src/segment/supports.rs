@@ -145,6 +145,8 @@ struct Walk<'a> {
     /// Voxels waiting per layer (index: the layer).
     pending: Vec<Vec<u32>>,
     reached: Bitmap,
+    /// Neighbours found around one voxel (reused: no allocation per voxel).
+    found: Vec<(usize, usize)>,
 }
 
 impl<'a> Walk<'a> {
@@ -155,6 +157,7 @@ impl<'a> Walk<'a> {
             side,
             pending: vec![],
             reached: Bitmap::new(ground.geom.res),
+            found: vec![],
         };
         for v in region.ones() {
             w.push_neighbours(v, 0);
@@ -164,55 +167,62 @@ impl<'a> Walk<'a> {
 
     /// How many voxels from the slab's mid-plane `v` lies, if on this side.
     fn layer(&self, v: usize) -> Option<usize> {
-        let s = (self.ground.geom.point_of(v) - self.ground.slab.centre).dot(self.ground.slab.normal) * self.side;
+        self.layer_at(self.ground.geom.point_of(v))
+    }
+
+    /// [`Self::layer`] of the voxel at point `p`.
+    fn layer_at(&self, p: Vec3) -> Option<usize> {
+        let s = (p - self.ground.slab.centre).dot(self.ground.slab.normal) * self.side;
         (s > 0.0).then(|| (s / self.ground.outline.h).round() as usize)
     }
 
     /// Queues the solid neighbours of `v` outside the region, inside the
     /// outline, at layer `from` or farther.
     fn push_neighbours(&mut self, v: usize, from: usize) {
-        let mut found = vec![];
-        self.ground.geom.neighbours26(v, |n| {
-            if self.reached.get(n) || self.ground.region.get(n) || !self.ground.solid.get(n) {
-                return;
-            }
-            if let Some(l) = self.layer(n).filter(|&l| l >= from) {
-                if self.ground.outline.holds(self.ground.geom.point_of(n)) {
-                    found.push((n, l));
-                }
-            }
-        });
-        for (n, l) in found {
+        let mut found = std::mem::take(&mut self.found);
+        self.candidates(v, |l| l >= from, &mut found);
+        for &(n, l) in &found {
             self.reached.set(n, true);
             if self.pending.len() <= l {
                 self.pending.resize(l + 1, vec![]);
             }
             self.pending[l].push(n as u32);
         }
+        self.found = found;
+    }
+
+    /// The solid neighbours of `v` not reached yet, outside the region and
+    /// inside the outline, whose layer passes `layer_ok`, with their layers
+    /// (into `out`, cleared first).
+    fn candidates(&self, v: usize, layer_ok: impl Fn(usize) -> bool, out: &mut Vec<(usize, usize)>) {
+        out.clear();
+        let g = self.ground;
+        g.geom.neighbours26(v, |n| {
+            if self.reached.get(n) || g.region.get(n) || !g.solid.get(n) {
+                return;
+            }
+            let p = g.geom.point_of(n);
+            if let Some(l) = self.layer_at(p).filter(|&l| layer_ok(l)) {
+                if g.outline.holds(p) {
+                    out.push((n, l));
+                }
+            }
+        });
     }
 
     /// Every voxel of layer `l` joined to the queued ones within the layer.
     fn flood_layer(&mut self, l: usize) -> Vec<u32> {
         let mut layer = vec![];
+        let mut same = std::mem::take(&mut self.found);
         while let Some(v) = self.pending.get_mut(l).and_then(|p| p.pop()) {
             layer.push(v);
-            let mut same = vec![];
-            self.ground.geom.neighbours26(v as usize, |n| {
-                if !self.reached.get(n)
-                    && !self.ground.region.get(n)
-                    && self.ground.solid.get(n)
-                    && self.layer(n) == Some(l)
-                {
-                    same.push(n);
-                }
-            });
-            for n in same {
-                if self.ground.outline.holds(self.ground.geom.point_of(n)) {
-                    self.reached.set(n, true);
-                    self.pending[l].push(n as u32);
-                }
+            self.candidates(v as usize, |k| k == l, &mut same);
+            for &(n, _) in &same {
+                self.reached.set(n, true);
+                self.pending[l].push(n as u32);
             }
         }
+        self.found = same;
         layer
     }
 
@@ -297,14 +307,15 @@ impl<'a> Walk<'a> {
         let mut seen = Bitmap::from_ones(self.ground.geom.res, layer);
         let mut stack: Vec<usize> = layer.iter().map(|&v| v as usize).collect();
         let mut count = layer.len();
+        let mut next = vec![];
         while let Some(v) = stack.pop() {
-            let mut next = vec![];
+            next.clear();
             self.ground.geom.neighbours26(v, |n| {
                 if !seen.get(n) && self.ground.solid.get(n) && !self.ground.region.get(n) && self.layer(n) == Some(l) {
                     next.push(n);
                 }
             });
-            for n in next {
+            for &n in &next {
                 seen.set(n, true);
                 count += 1;
                 if count >= goal {
