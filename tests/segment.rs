@@ -840,6 +840,63 @@ fn a_stroke_beside_a_touching_neighbour_does_not_tie_it_to_the_object() {
     );
 }
 
+#[test]
+fn an_object_with_a_large_cut_is_segmented_on_the_coarse_copy_from_its_first_stroke() {
+    // The red box of the test above, on a field far below the size at which
+    // every stroke goes to the coarse copy. With a threshold every cut
+    // passes, the object's strokes go there all the same and give what the
+    // coarse copy gives (which differs from the fine answer here: the
+    // boxes' faces are not on 2×2×2 block boundaries); with one no cut
+    // passes, the fine answer. An object whose first stroke is negative
+    // stays on the fine grid.
+    let (f, _) = boxes_on_a_floor();
+    let cache = f.feature_cache().unwrap();
+    let scene = Scene::single(f.clone());
+    let k = Intrinsics::from_fov_x(64, 48, 0.9);
+    let cam = Camera::look_at(k, Vec3::new(0.2, 0.4, 3.0), Vec3::ZERO, Vec3::Y);
+    let stroke_at = |target: Vec3, polarity: Polarity| {
+        let (end, _) = cam.project(target).unwrap();
+        Stroke {
+            camera: cam,
+            points: vec![end - Vec2::new(3.0, 0.0), end],
+            radius: 1,
+            polarity,
+            object: "red".into(),
+            joined: true,
+        }
+    };
+    let red = stroke_at(Vec3::new(-0.1, 0.1, 0.3), Polarity::Positive);
+    let blue = stroke_at(Vec3::new(0.3, 0.1, 0.3), Polarity::Negative);
+    let run = |strokes: &[&Stroke], p: &SegmentParams| {
+        let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(f.geom().res));
+        for s in strokes {
+            b.stroke(&scene, &cache, s, s.polarity, p).unwrap();
+        }
+        b.mask
+    };
+    let with = |coarse_min_voxels: usize, coarse_min_cut: usize| SegmentParams {
+        coarse_min_voxels,
+        coarse_min_cut,
+        ..Default::default()
+    };
+    assert!(cache.len() < SegmentParams::default().coarse_min_voxels);
+    let fine = run(&[&red], &with(usize::MAX, usize::MAX));
+    let coarse = run(&[&red], &with(0, usize::MAX));
+    assert!(fine != coarse, "the test needs a field where the two grids differ");
+    assert!(run(&[&red], &with(usize::MAX, 1)) == coarse);
+    assert!(
+        run(&[&red], &SegmentParams::default()) == fine,
+        "a small object stays fine"
+    );
+    // Decided at the first stroke, for all later ones (a negative one too).
+    let both = [&red, &blue];
+    assert!(run(&both, &with(usize::MAX, 1)) == run(&both, &with(0, usize::MAX)));
+    let negative_first = [&blue, &red];
+    let fine_after_negative = run(&negative_first, &with(usize::MAX, usize::MAX));
+    assert!(fine_after_negative != run(&negative_first, &with(0, usize::MAX)));
+    assert!(run(&negative_first, &with(usize::MAX, 1)) == fine_after_negative);
+}
+
 /// An off-white wall (|x| < 0.9, |y| < 0.5, |z| < 0.15) whose features turn
 /// steadily along x, from 0° at its left end to `drift_degrees` at its
 /// right, above a brown floor (y from −0.95 up to `floor_top`: −0.5 touches

@@ -97,6 +97,14 @@ pub struct SegmentParams {
     /// grid, the tabletop pot's NVOS-style strokes fell from 0.837 to
     /// 0.486 (the benchmark's NVOS mean 0.859 → 0.826).
     pub coarse_min_voxels: usize,
+    /// On fields below `coarse_min_voxels`, an object whose first stroke's
+    /// graph cut would label at least this many voxels (probed on the
+    /// coarse copy, counted in fine voxels) is segmented on the coarse copy
+    /// all the same. Such cuts are a surface whose features drift (a floor)
+    /// or a whole model (lego): on the realistic tabletop the floor's cut
+    /// labels 349k voxels (max-flow alone 119 ms, the stroke 420 ms), every
+    /// other object's 3k–40k (README, "Large cuts on the coarse copy").
+    pub coarse_min_cut: usize,
 }
 
 impl Default for SegmentParams {
@@ -125,6 +133,7 @@ impl Default for SegmentParams {
             // on a coarse grid").
             coarse: true,
             coarse_min_voxels: 800_000,
+            coarse_min_cut: 100_000,
         }
     }
 }
@@ -270,9 +279,20 @@ impl SegmentParams {
 /// session's first stroke on a field makes them with the feature cache,
 /// under a progress message; the stroke benchmark counts them as one-off.
 pub fn prepare(cache: &FeatureCache, p: &SegmentParams) {
-    let on = coarse_cache(cache, p).unwrap_or(cache);
-    if p.grow.rule == GrowthRule::Stable && p.cut.rounds > 0 {
-        on.neighbours();
+    if p.grow.rule != GrowthRule::Stable || p.cut.rounds == 0 {
+        return;
+    }
+    match coarse_cache(cache, p) {
+        Some(coarse) => {
+            coarse.neighbours();
+        }
+        None => {
+            cache.neighbours();
+            // Large objects go to the coarse copy ([`SegmentParams::coarse_min_seeds`]).
+            if let Some(coarse) = cache.coarse().filter(|_| p.coarse) {
+                coarse.neighbours();
+            }
+        }
     }
 }
 
@@ -793,6 +813,10 @@ pub struct MaskBuilder {
     /// cache's coarse copy, and the fine mask it last gave (a mask changed
     /// since, by other edits, is coarsened again before the next stroke).
     coarse: Option<Box<(MaskBuilder, Bitmap)>>,
+    /// Whether the object is large enough to be segmented on the coarse
+    /// copy of a mid-size field ([`SegmentParams::coarse_min_seeds`]),
+    /// decided at its first stroke and kept for the rest.
+    large: Option<bool>,
 }
 
 impl MaskBuilder {
@@ -804,6 +828,7 @@ impl MaskBuilder {
             positive: None,
             negatives: Negatives::default(),
             coarse: None,
+            large: None,
         }
     }
 
@@ -817,20 +842,51 @@ impl MaskBuilder {
         polarity: Polarity,
         p: &SegmentParams,
     ) -> Result<Timings> {
-        match coarse_cache(cache, p) {
-            Some(coarse) => self.stroke_coarse(scene, cache, coarse, stroke, polarity, p),
-            None => self.stroke_on(scene, cache, cache, stroke, polarity, p),
+        let look = look_at(scene, cache, stroke, p)?;
+        let t0 = Instant::now();
+        let on = match coarse_cache(cache, p) {
+            Some(coarse) => Some(coarse),
+            None => self.large_object_copy(cache, &look, polarity, p),
+        };
+        let decided_ms = ms_since(t0);
+        let mut t = match on {
+            Some(coarse) => self.stroke_coarse(cache, coarse, &look, polarity, p)?,
+            None => self.stroke_on(cache, cache, &look, polarity, p)?,
+        };
+        t.nnfm_ms += decided_ms;
+        Ok(t)
+    }
+
+    /// The coarse copy of a mid-size field's `cache` when this object's
+    /// cuts are large (decided at its first stroke: a positive one whose
+    /// graph cut, probed on the coarse copy, would label at least
+    /// [`SegmentParams::coarse_min_cut`] fine voxels).
+    fn large_object_copy<'c>(
+        &mut self,
+        cache: &'c FeatureCache,
+        look: &Look,
+        polarity: Polarity,
+        p: &SegmentParams,
+    ) -> Option<&'c FeatureCache> {
+        let cuts = p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0) && p.cut.rounds > 0;
+        if !p.coarse || !cuts {
+            return None;
         }
+        let coarse = cache.coarse()?;
+        let large = *self.large.get_or_insert_with(|| {
+            let f3 = coarse.factor.pow(3);
+            polarity == Polarity::Positive && cut_size(coarse, cache, look, p) * f3 >= p.coarse_min_cut
+        });
+        large.then_some(coarse)
     }
 
     /// The stroke segmented on the coarse copy of `fine`, its mask mapped
     /// back: every solid fine voxel of a selected coarse voxel.
     fn stroke_coarse(
         &mut self,
-        scene: &Scene,
         fine: &FeatureCache,
         coarse: &FeatureCache,
-        stroke: &Stroke,
+        look: &Look,
         polarity: Polarity,
         p: &SegmentParams,
     ) -> Result<Timings> {
@@ -849,7 +905,7 @@ impl MaskBuilder {
         if level.1 != self.mask {
             level.0.mask = crate::field::coarse::downsample(&self.mask, coarse.factor);
         }
-        let mut t = level.0.stroke_on(scene, coarse, fine, stroke, polarity, p)?;
+        let mut t = level.0.stroke_on(coarse, fine, look, polarity, p)?;
         let t0 = Instant::now();
         let floor = p.sigma_floor(fine.voxel_size);
         self.mask = crate::field::coarse::upsample(fine, &level.0.mask, coarse.factor, floor);
@@ -862,10 +918,9 @@ impl MaskBuilder {
     /// field in `scene`) or their coarse copy.
     fn stroke_on(
         &mut self,
-        scene: &Scene,
         cache: &FeatureCache,
         owner: &FeatureCache,
-        stroke: &Stroke,
+        look: &Look,
         polarity: Polarity,
         p: &SegmentParams,
     ) -> Result<Timings> {
@@ -893,7 +948,7 @@ impl MaskBuilder {
             },
             _ => *p,
         };
-        let (s, mut t) = segment_stroke(scene, cache, owner, stroke, known, &own)?;
+        let (s, mut t) = segment_stroke(cache, owner, look, known, &own)?;
         match polarity {
             Polarity::Positive => {
                 self.positive_anchors.extend_from_slice(&s.anchors);
@@ -924,8 +979,7 @@ impl MaskBuilder {
                     .filter(|&a| s.region.get(a as usize))
                     .collect();
                 self.negatives.add(s.dist.centres(), &touched);
-                let field = anchor::layer_of(scene, owner).map(|l| &*l.field);
-                if !cuts || !self.cut_out(cache, field, &s, p, &mut t.cut)? {
+                if !cuts || !self.cut_out(cache, look.field, &s, p, &mut t.cut)? {
                     self.subtract_competing(cache, &s.region, s.dist.centres().clone(), p)?;
                 }
                 if p.grow.rule == GrowthRule::Stable {
@@ -1165,7 +1219,8 @@ pub fn region_from_stroke(
     stroke: &Stroke,
     p: &SegmentParams,
 ) -> Result<(Bitmap, Timings)> {
-    segment_stroke(scene, cache, cache, stroke, &Negatives::default(), p).map(|(s, t)| (s.region, t))
+    let look = look_at(scene, cache, stroke, p)?;
+    segment_stroke(cache, cache, &look, &Negatives::default(), p).map(|(s, t)| (s.region, t))
 }
 
 /// What one stroke selected.
@@ -1180,48 +1235,89 @@ struct StrokeRegion {
     palette: Palette,
 }
 
-/// [`region_from_stroke`] for an object with earlier `negatives`, also
-/// returning the stroke's centres and anchors.
-/// `owner` is the cache of the field in `scene` (where the stroke's
-/// surface is found), `cache` that cache or its coarse copy.
-fn segment_stroke(
-    scene: &Scene,
-    cache: &FeatureCache,
-    owner: &FeatureCache,
-    stroke: &Stroke,
-    negatives: &Negatives,
-    p: &SegmentParams,
-) -> Result<(StrokeRegion, Timings)> {
+/// What a stroke shows, read from the scene once whichever grid it is
+/// segmented on: its pixels' features and colours, the voxels under it on
+/// the field's own grid (ascending), and the field it is drawn on.
+struct Look<'a> {
+    samples: StrokeSamples,
+    anchors: Vec<u32>,
+    field: Option<&'a Field>,
+    pixels: usize,
+    ms: f64,
+}
+
+/// The [`Look`] of `stroke` on `scene`, whose field has the features
+/// `owner`.
+fn look_at<'a>(scene: &'a Scene, owner: &FeatureCache, stroke: &Stroke, p: &SegmentParams) -> Result<Look<'a>> {
     p.validate()?;
-    let mut t = Timings::default();
     let t0 = Instant::now();
-    t.stroke_pixels = stroke_pixels(stroke)?.len();
+    let pixels = stroke_pixels(stroke)?.len();
     let samples = stroke_samples(scene, stroke, p.min_stroke_opacity)?;
-    let mut anchors = if p.connected {
+    let anchors = if p.connected {
         anchor::anchor_voxels(scene, owner, &samples.hits)
     } else {
         vec![]
     };
-    if !std::ptr::eq(cache, owner) {
-        anchors = crate::field::coarse::parents(owner.geom.res, cache.factor, &anchors);
-    }
-    t.stroke_features_ms = ms_since(t0);
-    let field = anchor::layer_of(scene, owner).map(|l| &*l.field);
-    let look = StrokeLook {
-        anchors: &anchors,
-        palette: Palette::new(&samples.colours),
+    Ok(Look {
+        samples,
+        anchors,
+        field: anchor::layer_of(scene, owner).map(|l| &*l.field),
+        pixels,
+        ms: ms_since(t0),
+    })
+}
+
+/// How many voxels the graph cut of `look`'s stroke labels on `coarse`,
+/// the coarse copy of `fine`: its NNFM seeds joined to the stroke and
+/// their stable flood, as [`segment_anchored`] finds them (a few ms: an
+/// eighth of the voxels).
+fn cut_size(coarse: &FeatureCache, fine: &FeatureCache, look: &Look, p: &SegmentParams) -> usize {
+    let centres = stroke_centres(&look.samples.features, look.samples.channels, p);
+    let floor = p.sigma_floor(coarse.voxel_size);
+    let (seeds, mut dist) = nnfm::nnfm_seed_measuring_all(coarse, &centres, p.theta, floor);
+    let anchors = crate::field::coarse::parents(fine.geom.res, coarse.factor, &look.anchors);
+    let seeds = anchor::joined_seeds(&seeds, &anchors, anchor::radius(coarse)).unwrap_or(seeds);
+    let s = stable::stable_region(coarse, &mut dist, &seeds, p.theta, floor, &p.stable);
+    s.before_flood.map_or(s.reached.len(), |graph| graph.count())
+}
+
+/// [`region_from_stroke`] for an object with earlier `negatives`, also
+/// returning the stroke's centres and anchors.
+/// `owner` is the cache of the field the stroke was looked at on, `cache`
+/// that cache or its coarse copy.
+fn segment_stroke(
+    cache: &FeatureCache,
+    owner: &FeatureCache,
+    look: &Look,
+    negatives: &Negatives,
+    p: &SegmentParams,
+) -> Result<(StrokeRegion, Timings)> {
+    let mut t = Timings {
+        stroke_features_ms: look.ms,
+        stroke_pixels: look.pixels,
+        ..Timings::default()
     };
+    let anchors = if std::ptr::eq(cache, owner) {
+        look.anchors.clone()
+    } else {
+        crate::field::coarse::parents(owner.geom.res, cache.factor, &look.anchors)
+    };
+    let stroke_look = StrokeLook {
+        anchors: &anchors,
+        palette: Palette::new(&look.samples.colours),
+    };
+    let samples = &look.samples;
     let (region, dist) = segment_anchored(
         cache,
-        field,
+        look.field,
         &samples.features,
         samples.channels,
-        &look,
+        &stroke_look,
         negatives,
         p,
         &mut t,
     )?;
-    let palette = look.palette;
+    let palette = stroke_look.palette;
     Ok((
         StrokeRegion {
             region,
