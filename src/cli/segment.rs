@@ -87,7 +87,9 @@ pub struct ParamArgs {
     pub cut_colour_margin: Option<f32>,
     /// Segment on the field's grid coarsened 2× (an eighth of the voxels;
     /// 3× past 1.5 M occupied voxels) and map the mask back to the fine
-    /// grid, on fields with at least 800k occupied voxels: `true` or `false` [default: true].
+    /// grid, on fields with at least 800k occupied voxels, and for objects
+    /// whose first stroke's graph cut would label 100k voxels or more on
+    /// smaller fields: `true` or `false` [default: true].
     #[arg(long)]
     pub coarse: Option<bool>,
 }

@@ -553,7 +553,7 @@ fn tools_panel(
         .changed();
     commit |= ui
         .checkbox(&mut p.coarse, "fast: segment on a 2–3× coarser grid")
-        .on_hover_text("The same pipeline over an eighth of the voxels (a 27th past 1.5 M occupied voxels), the mask mapped back to the field's grid: several times faster strokes on large fields")
+        .on_hover_text("The same pipeline over an eighth of the voxels (a 27th past 1.5 M occupied voxels), the mask mapped back to the field's grid: several times faster strokes on large fields, and on large objects (a floor, a whole model) of smaller ones")
         .changed();
     ui.checkbox(&mut state.live, "live: redo the last stroke with new values");
     if let Some(r) = rule {
