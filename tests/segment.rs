@@ -848,7 +848,7 @@ fn an_object_with_a_large_cut_is_segmented_on_the_coarse_copy_from_its_first_str
     // coarse copy gives (which differs from the fine answer here: the
     // boxes' faces are not on 2×2×2 block boundaries); with one no cut
     // passes, the fine answer. An object whose first stroke is negative
-    // stays on the fine grid.
+    // goes by the size of its mask.
     let (f, _) = boxes_on_a_floor();
     let cache = f.feature_cache().unwrap();
     let scene = Scene::single(f.clone());
@@ -891,6 +891,17 @@ fn an_object_with_a_large_cut_is_segmented_on_the_coarse_copy_from_its_first_str
     // Decided at the first stroke, for all later ones (a negative one too).
     let both = [&red, &blue];
     assert!(run(&both, &with(usize::MAX, 1)) == run(&both, &with(0, usize::MAX)));
+    // A negative stroke first decides by the mask it cuts: the editor
+    // starts a builder from the object's mask for every stroke.
+    let from_mask = |p: &SegmentParams| {
+        let mut b = isrf::segment::MaskBuilder::new(fine.clone());
+        b.stroke(&scene, &cache, &blue, Polarity::Negative, p).unwrap();
+        b.mask
+    };
+    let coarse_negative = from_mask(&with(0, usize::MAX));
+    assert!(coarse_negative != from_mask(&with(usize::MAX, usize::MAX)));
+    assert!(from_mask(&with(usize::MAX, fine.count())) == coarse_negative);
+    assert!(from_mask(&with(usize::MAX, fine.count() + 1)) == from_mask(&with(usize::MAX, usize::MAX)));
     let negative_first = [&blue, &red];
     let fine_after_negative = run(&negative_first, &with(usize::MAX, usize::MAX));
     assert!(fine_after_negative != run(&negative_first, &with(0, usize::MAX)));

@@ -814,7 +814,7 @@ pub struct MaskBuilder {
     /// since, by other edits, is coarsened again before the next stroke).
     coarse: Option<Box<(MaskBuilder, Bitmap)>>,
     /// Whether the object is large enough to be segmented on the coarse
-    /// copy of a mid-size field ([`SegmentParams::coarse_min_seeds`]),
+    /// copy of a mid-size field ([`SegmentParams::coarse_min_cut`]),
     /// decided at its first stroke and kept for the rest.
     large: Option<bool>,
 }
@@ -858,9 +858,10 @@ impl MaskBuilder {
     }
 
     /// The coarse copy of a mid-size field's `cache` when this object's
-    /// cuts are large (decided at its first stroke: a positive one whose
+    /// cuts are large, decided at its first stroke: a positive one whose
     /// graph cut, probed on the coarse copy, would label at least
-    /// [`SegmentParams::coarse_min_cut`] fine voxels).
+    /// [`SegmentParams::coarse_min_cut`] fine voxels, or a negative one on
+    /// a mask that large.
     fn large_object_copy<'c>(
         &mut self,
         cache: &'c FeatureCache,
@@ -873,9 +874,11 @@ impl MaskBuilder {
             return None;
         }
         let coarse = cache.coarse()?;
-        let large = *self.large.get_or_insert_with(|| {
-            let f3 = coarse.factor.pow(3);
-            polarity == Polarity::Positive && cut_size(coarse, cache, look, p) * f3 >= p.coarse_min_cut
+        let large = *self.large.get_or_insert_with(|| match polarity {
+            Polarity::Positive => cut_size(coarse, cache, look, p) * coarse.factor.pow(3) >= p.coarse_min_cut,
+            // A negative stroke's cut labels the mask (the editor starts a
+            // builder from the object's mask for every stroke).
+            Polarity::Negative => self.mask.count() >= p.coarse_min_cut,
         });
         large.then_some(coarse)
     }
