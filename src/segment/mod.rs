@@ -320,6 +320,10 @@ pub struct Timings {
     pub cut: cut::CutTimings,
     pub grow_steps: usize,
     pub stroke_pixels: usize,
+    /// Fine voxels per coarse voxel along each axis of the grid the
+    /// stroke was segmented on (1: the field's own; `seed_voxels` and
+    /// `region_voxels` count that grid's voxels).
+    pub grid: usize,
     pub seed_voxels: usize,
     pub region_voxels: usize,
     /// Stable rule: the hysteresis threshold it chose (0 otherwise).
@@ -1298,6 +1302,7 @@ fn segment_stroke(
     let mut t = Timings {
         stroke_features_ms: look.ms,
         stroke_pixels: look.pixels,
+        grid: if std::ptr::eq(cache, owner) { 1 } else { cache.factor },
         ..Timings::default()
     };
     let anchors = if std::ptr::eq(cache, owner) {
