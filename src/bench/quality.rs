@@ -333,14 +333,17 @@ fn radiance_key(capture_key: &str, config: &TrainConfig) -> String {
 
 /// The training settings as they enter a cache key. Settings added since
 /// the cache's fields were trained are left out while at their default (a
-/// default that leaves training unchanged), so those fields stay valid.
+/// default that leaves training unchanged), so those fields stay valid:
+/// `random_background` changes nothing here, the captures have no alpha.
 fn settings_key(c: &TrainConfig) -> String {
-    let json = serde_json::to_string(c).unwrap_or_default();
+    let mut json = serde_json::to_string(c).unwrap_or_default();
     if c.distortion_coarse == 1.0 {
-        json.replace(",\"distortion_coarse\":1.0", "")
-    } else {
-        json
+        json = json.replace(",\"distortion_coarse\":1.0", "");
     }
+    if c.random_background {
+        json = json.replace(",\"random_background\":true", "");
+    }
+    json
 }
 
 /// Cache key of a capture.
@@ -1369,17 +1372,26 @@ mod tests {
     fn settings_added_at_their_default_leave_cache_keys_alone() {
         let c = TrainConfig::default();
         let key = settings_key(&c);
-        assert!(!key.contains("distortion_coarse"), "{key}");
-        // Exactly the serialization without the new setting: the order of
+        assert!(
+            !key.contains("distortion_coarse") && !key.contains("random_background"),
+            "{key}"
+        );
+        // Exactly the serialization without the new settings: the order of
         // the other settings (struct order) is kept.
         let full = serde_json::to_string(&c).unwrap();
-        assert_eq!(full.len() - key.len(), ",\"distortion_coarse\":1.0".len());
+        let added = ",\"distortion_coarse\":1.0".len() + ",\"random_background\":true".len();
+        assert_eq!(full.len() - key.len(), added);
         let other = TrainConfig {
             distortion_coarse: 0.0,
-            ..c
+            ..c.clone()
         };
         assert!(settings_key(&other).contains("\"distortion_coarse\":0.0"));
         assert_ne!(radiance_key("k", &other), radiance_key("k", &TrainConfig::default()));
+        let plain = TrainConfig {
+            random_background: false,
+            ..c
+        };
+        assert!(settings_key(&plain).contains("\"random_background\":false"));
     }
 
     #[test]

@@ -20,6 +20,11 @@ pub struct RaySet {
     cameras: Vec<Camera>,
     /// RGB in units of 1/65535: exact for 8- and 16-bit images.
     colors: Vec<[u16; 3]>,
+    /// Each pixel's opacity in the same units when the views have an alpha
+    /// channel (Blender scenes: `colors` are composited on the dataset's
+    /// background), else empty: 2 more bytes a pixel, so that a batch can
+    /// be trained on another background ([`RaySet::color_over`]).
+    alpha: Vec<u16>,
     /// Index of each view's first pixel, ascending.
     starts: Vec<u32>,
 }
@@ -65,9 +70,11 @@ impl RaySet {
             "{n} training pixels: at most {} in one set",
             u32::MAX
         );
+        let with_alpha = views.iter().any(|(_, img)| img.alpha.is_some());
         let mut out = RaySet {
             cameras: views.iter().map(|(c, _)| *c).collect(),
             colors: Vec::with_capacity(n),
+            alpha: Vec::with_capacity(if with_alpha { n } else { 0 }),
             starts: Vec::with_capacity(views.len()),
         };
         for (_, img) in views {
@@ -75,6 +82,12 @@ impl RaySet {
             for y in 0..img.height {
                 for x in 0..img.width {
                     out.colors.push(img.pixel(x, y).map(to_u16));
+                }
+            }
+            if with_alpha {
+                match &img.alpha {
+                    Some(a) => out.alpha.extend(a.iter().map(|&v| to_u16(v))),
+                    None => out.alpha.resize(out.colors.len(), u16::MAX),
                 }
             }
         }
@@ -105,6 +118,21 @@ impl RaySet {
     pub fn color(&self, i: usize) -> Vec3 {
         Vec3::from(self.colors[i].map(|c| f32::from(c) / 65535.0))
     }
+    /// Whether the views' opacity is known ([`RaySet::color_over`]).
+    pub fn has_alpha(&self) -> bool {
+        !self.alpha.is_empty()
+    }
+    /// The target colour of pixel `i` over `background` instead of
+    /// `composited_on`, the background its colour was composited on when
+    /// loaded: c + (1 − α)(background − composited_on). Without alpha, the
+    /// colour as stored.
+    #[inline]
+    pub fn color_over(&self, i: usize, background: Vec3, composited_on: Vec3) -> Vec3 {
+        match self.alpha.get(i) {
+            Some(&a) => self.color(i) + (1.0 - f32::from(a) / 65535.0) * (background - composited_on),
+            None => self.color(i),
+        }
+    }
     /// The view (index into the list the set was built from) of pixel `i`.
     #[inline]
     pub fn view(&self, i: usize) -> usize {
@@ -119,6 +147,7 @@ impl RaySet {
     /// Bytes the set holds.
     pub fn memory_bytes(&self) -> usize {
         self.len() * size_of::<[u16; 3]>()
+            + self.alpha.len() * size_of::<u16>()
             + self.starts.len() * size_of::<u32>()
             + self.cameras.len() * size_of::<Camera>()
     }
@@ -370,6 +399,45 @@ mod tests {
             alpha: None,
         };
         assert!(RaySet::build(&[(a, &small)]).is_err());
+    }
+
+    /// Photos with alpha, composited on a background when loaded: the
+    /// colour over another background is what compositing the straight
+    /// colour on it gives (to 16-bit rounding); a view without alpha counts
+    /// as opaque, and a set without alpha keeps its 6 bytes a pixel.
+    #[test]
+    fn colours_over_another_background_follow_the_alpha() {
+        let k = Intrinsics::from_fov_x(4, 3, 1.0);
+        let cam = Camera::new(k, Affine3A::IDENTITY);
+        let on = Vec3::new(1.0, 1.0, 1.0);
+        let straight = |i: usize| Vec3::new(0.9, (i as f32 * 0.07) % 1.0, 0.2);
+        let alpha = |i: usize| (i as f32 / 11.0).min(1.0);
+        let with = Image {
+            width: 4,
+            height: 3,
+            rgb: (0..12)
+                .flat_map(|i| (straight(i) * alpha(i) + on * (1.0 - alpha(i))).to_array())
+                .collect(),
+            alpha: Some((0..12).map(alpha).collect()),
+        };
+        let without = Image {
+            alpha: None,
+            ..with.clone()
+        };
+        let set = RaySet::build(&[(cam, &with), (cam, &without)]).unwrap();
+        assert!(set.has_alpha());
+        assert_eq!(set.memory_bytes(), 24 * 8 + 2 * 4 + 2 * size_of::<Camera>());
+        let over = Vec3::new(0.1, 0.6, 0.3);
+        for i in 0..12 {
+            let want = straight(i) * alpha(i) + over * (1.0 - alpha(i));
+            assert!(set.color_over(i, over, on).abs_diff_eq(want, 1e-4), "pixel {i}");
+            // The view without alpha is taken as opaque: its colour as stored.
+            assert_eq!(set.color_over(12 + i, over, on), set.color(12 + i));
+        }
+        let plain = RaySet::build(&[(cam, &without)]).unwrap();
+        assert!(!plain.has_alpha());
+        assert_eq!(plain.color_over(5, over, on), plain.color(5));
+        assert_eq!(plain.memory_bytes(), 12 * 6 + 4 + size_of::<Camera>());
     }
 
     /// Views of different sizes: every pixel is found in its own view, and

@@ -96,6 +96,12 @@ pub struct TrainConfig {
     /// mining, 1: unbiased).
     pub mining_alpha: f32,
     pub background: [f32; 3],
+    /// Train each radiance step over a random background colour where the
+    /// photos' opacity is known (Blender scenes), as Instant-NGP does:
+    /// over the one background a field can hide a faint halo in it (a
+    /// white fringe on white); over changing ones its opacity must match
+    /// the photos'. Held-out views are still scored over `background`.
+    pub random_background: bool,
     /// Initial box; `None`: [`super::rays::default_bounds`] of the dataset.
     pub bounds: Option<[[f32; 3]; 2]>,
     pub seed: u64,
@@ -169,6 +175,7 @@ impl Default for TrainConfig {
             mining: 0.0,
             mining_alpha: 0.5,
             background: [1.0; 3],
+            random_background: true,
             bounds: None,
             seed: 0,
             feature_iters: 0,
@@ -631,6 +638,18 @@ impl Trainer {
         self.config.lr_final.powf(f.min(1.0))
     }
 
+    /// The background of this step's rays: one random colour per step
+    /// with [`TrainConfig::random_background`] while density and colour
+    /// train on photos with alpha, else the dataset's. (A colour per ray
+    /// instead gave lego `--downscale 4` 33.30 dB against 33.59 for one per
+    /// step, alpha IoU min 0.979 against 0.976.)
+    fn batch_background(&self, geometry: bool) -> Vec3 {
+        if !(self.config.random_background && geometry && self.rays.has_alpha()) {
+            return Vec3::from(self.config.background);
+        }
+        random_colour(self.config.seed ^ (self.iter as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+    }
+
     /// One iteration.
     pub fn step(&mut self) -> Result<StepStats> {
         ensure!(!self.is_done(), "training is already complete");
@@ -646,8 +665,10 @@ impl Trainer {
         } else {
             self.history.last().map(|s| s.loss)
         };
+        let composited_on = opts.background;
         let opts = MarchOpts {
             colour: carried.is_none(),
+            background: self.batch_background(opts.geometry),
             ..opts
         };
         let (batch, mined) = self.sample_batch();
@@ -679,7 +700,7 @@ impl Trainer {
                     let out = forward(model, &ray, &opts, &mut s);
                     ns += out.samples as u64;
                     let target_rgb = rays.color(ri);
-                    let d = out.color - target_rgb;
+                    let d = out.color - rays.color_over(ri, opts.background, composited_on);
                     se += d.length_squared() as f64;
                     let mut g = d * (2.0 / (3.0 * nb));
                     if let Some(w) = weights {
@@ -929,6 +950,13 @@ impl Trainer {
         }
         (outs, feats)
     }
+}
+
+/// A uniformly random colour from `seed` (a step's background under
+/// [`TrainConfig::random_background`]).
+fn random_colour(seed: u64) -> Vec3 {
+    let mut rng = crate::util::SplitMix64::new(seed);
+    Vec3::new(rng.unit() as f32, rng.unit() as f32, rng.unit() as f32)
 }
 
 /// The renderer's default sample spacing for a grid: half the smallest
