@@ -803,6 +803,22 @@ fn boxes_on_a_floor() -> (Arc<Field>, Bitmap) {
     (f, red)
 }
 
+/// A three-pixel stroke on [`boxes_on_a_floor`], seen from the front,
+/// that ends at `target`.
+fn stroke_ending_at(target: Vec3, polarity: Polarity) -> Stroke {
+    let k = Intrinsics::from_fov_x(64, 48, 0.9);
+    let cam = Camera::look_at(k, Vec3::new(0.2, 0.4, 3.0), Vec3::ZERO, Vec3::Y);
+    let (end, _) = cam.project(target).unwrap();
+    Stroke {
+        camera: cam,
+        points: vec![end - Vec2::new(3.0, 0.0), end],
+        radius: 1,
+        polarity,
+        object: "red".into(),
+        joined: true,
+    }
+}
+
 #[test]
 fn a_stroke_beside_a_touching_neighbour_does_not_tie_it_to_the_object() {
     // The stroke ends a voxel from the blue box: the voxels within the
@@ -813,17 +829,7 @@ fn a_stroke_beside_a_touching_neighbour_does_not_tie_it_to_the_object() {
     let (f, red) = boxes_on_a_floor();
     let cache = f.feature_cache().unwrap();
     let scene = Scene::single(f.clone());
-    let k = Intrinsics::from_fov_x(64, 48, 0.9);
-    let cam = Camera::look_at(k, Vec3::new(0.2, 0.4, 3.0), Vec3::ZERO, Vec3::Y);
-    let (end, _) = cam.project(Vec3::new(-0.1, 0.1, 0.3)).unwrap();
-    let stroke = Stroke {
-        camera: cam,
-        points: vec![end - Vec2::new(3.0, 0.0), end],
-        radius: 1,
-        polarity: Polarity::Positive,
-        object: "red".into(),
-        joined: true,
-    };
+    let stroke = stroke_ending_at(Vec3::new(-0.1, 0.1, 0.3), Polarity::Positive);
     let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(f.geom().res));
     b.stroke(&scene, &cache, &stroke, Polarity::Positive, &SegmentParams::default())
         .unwrap();
@@ -852,21 +858,8 @@ fn an_object_with_a_large_cut_is_segmented_on_the_coarse_copy_from_its_first_str
     let (f, _) = boxes_on_a_floor();
     let cache = f.feature_cache().unwrap();
     let scene = Scene::single(f.clone());
-    let k = Intrinsics::from_fov_x(64, 48, 0.9);
-    let cam = Camera::look_at(k, Vec3::new(0.2, 0.4, 3.0), Vec3::ZERO, Vec3::Y);
-    let stroke_at = |target: Vec3, polarity: Polarity| {
-        let (end, _) = cam.project(target).unwrap();
-        Stroke {
-            camera: cam,
-            points: vec![end - Vec2::new(3.0, 0.0), end],
-            radius: 1,
-            polarity,
-            object: "red".into(),
-            joined: true,
-        }
-    };
-    let red = stroke_at(Vec3::new(-0.1, 0.1, 0.3), Polarity::Positive);
-    let blue = stroke_at(Vec3::new(0.3, 0.1, 0.3), Polarity::Negative);
+    let red = stroke_ending_at(Vec3::new(-0.1, 0.1, 0.3), Polarity::Positive);
+    let blue = stroke_ending_at(Vec3::new(0.3, 0.1, 0.3), Polarity::Negative);
     let run = |strokes: &[&Stroke], p: &SegmentParams| {
         let mut b = isrf::segment::MaskBuilder::new(Bitmap::new(f.geom().res));
         for s in strokes {
