@@ -192,7 +192,7 @@ pub fn run(a: Args) -> Result<()> {
             format!("{} steps", t.grow_steps)
         };
         let grid = match t.grid {
-            1 => String::new(),
+            0 | 1 => String::new(),
             f => format!(" on the {f}× coarser grid"),
         };
         println!(

@@ -781,8 +781,12 @@ fn status_line(
         ui.label(&state.status);
         if let Some(t) = &state.last_timings {
             ui.separator();
+            let grid = match t.grid {
+                0 | 1 => String::new(),
+                f => format!(" on the {f}× coarser grid"),
+            };
             ui.label(format!(
-                "last stroke: features {:.0} ms · k-means {:.0} ms · NNFM {:.0} ms · growth {:.0} ms ({} steps) · cut {:.0} ms · total {:.0} ms",
+                "last stroke{grid}: features {:.0} ms · k-means {:.0} ms · NNFM {:.0} ms · growth {:.0} ms ({} steps) · cut {:.0} ms · total {:.0} ms",
                 t.stroke_features_ms,
                 t.kmeans_ms,
                 t.nnfm_ms,
