@@ -165,6 +165,12 @@ impl SegmentParams {
         }
     }
 
+    /// Whether strokes are refined by the graph cut: the stable rule with
+    /// growth and at least one cut round.
+    pub fn cuts(&self) -> bool {
+        self.grow.rule == GrowthRule::Stable && self.growth != Growth::Steps(0) && self.cut.rounds > 0
+    }
+
     /// The σ below which voxels are neither seeds nor (bounded rule) grown
     /// into, on a grid of voxel size `h`.
     pub fn sigma_floor(&self, h: f32) -> f32 {
@@ -288,8 +294,8 @@ pub fn prepare(cache: &FeatureCache, p: &SegmentParams) {
         }
         None => {
             cache.neighbours();
-            // Large objects go to the coarse copy ([`SegmentParams::coarse_min_seeds`]).
-            if let Some(coarse) = cache.coarse().filter(|_| p.coarse) {
+            // Large objects go to the coarse copy ([`SegmentParams::coarse_min_cut`]).
+            if let Some(coarse) = p.coarse.then(|| cache.coarse()).flatten() {
                 coarse.neighbours();
             }
         }
@@ -445,16 +451,9 @@ fn segment_anchored(
         GrowthRule::Paper => p.seed_floor,
         _ => p.sigma_floor(cache.voxel_size),
     };
-    // The stable flood will want nearly every solid row's distance.
     let stable = p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0);
-    let (mut region, mut dist) = match stable {
-        true => nnfm::nnfm_seed_measuring_all(cache, &centres, p.theta, floor),
-        false => nnfm::nnfm_seed_with_distances(cache, &centres, p.theta, floor),
-    };
     let anchors = stroke.anchors;
-    if let Some(joined) = anchor::joined_seeds(&region, anchors, anchor::radius(cache)) {
-        region = joined;
-    }
+    let (mut region, mut dist) = joined_seeds(cache, &centres, anchors, floor, stable, p);
     t.nnfm_ms = ms_since(t0);
     t.seed_voxels = region.count();
     let t0 = Instant::now();
@@ -873,8 +872,7 @@ impl MaskBuilder {
         polarity: Polarity,
         p: &SegmentParams,
     ) -> Option<&'c FeatureCache> {
-        let cuts = p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0) && p.cut.rounds > 0;
-        if !p.coarse || !cuts {
+        if !p.coarse || !p.cuts() {
             return None;
         }
         let coarse = cache.coarse()?;
@@ -947,7 +945,7 @@ impl MaskBuilder {
         // benchmark's NVOS mean 0.859 → 0.858); the stable flood (40–85
         // ms) changed nothing there or on the benchmark (its negatives'
         // stable regions are their seeds).
-        let cuts = p.grow.rule == GrowthRule::Stable && p.growth != Growth::Steps(0) && p.cut.rounds > 0;
+        let cuts = p.cuts();
         let own = match polarity {
             Polarity::Negative if cuts => SegmentParams {
                 growth: Growth::Steps(0),
@@ -1242,6 +1240,26 @@ struct StrokeRegion {
     palette: Palette,
 }
 
+/// The NNFM seeds of `centres` (σ above `floor`) joined to the voxels
+/// under the stroke (`anchors`, when any join), with their distances;
+/// with `measure_all` (the stable flood will want nearly every solid
+/// row's distance) every solid row is measured in the same pass.
+fn joined_seeds(
+    cache: &FeatureCache,
+    centres: &Centroids,
+    anchors: &[u32],
+    floor: f32,
+    measure_all: bool,
+    p: &SegmentParams,
+) -> (Bitmap, nnfm::StrokeDistances) {
+    let (seeds, dist) = match measure_all {
+        true => nnfm::nnfm_seed_measuring_all(cache, centres, p.theta, floor),
+        false => nnfm::nnfm_seed_with_distances(cache, centres, p.theta, floor),
+    };
+    let seeds = anchor::joined_seeds(&seeds, anchors, anchor::radius(cache)).unwrap_or(seeds);
+    (seeds, dist)
+}
+
 /// What a stroke shows, read from the scene once whichever grid it is
 /// segmented on: its pixels' features and colours, the voxels under it on
 /// the field's own grid (ascending), and the field it is drawn on.
@@ -1281,9 +1299,8 @@ fn look_at<'a>(scene: &'a Scene, owner: &FeatureCache, stroke: &Stroke, p: &Segm
 fn cut_size(coarse: &FeatureCache, fine: &FeatureCache, look: &Look, p: &SegmentParams) -> usize {
     let centres = stroke_centres(&look.samples.features, look.samples.channels, p);
     let floor = p.sigma_floor(coarse.voxel_size);
-    let (seeds, mut dist) = nnfm::nnfm_seed_measuring_all(coarse, &centres, p.theta, floor);
     let anchors = crate::field::coarse::parents(fine.geom.res, coarse.factor, &look.anchors);
-    let seeds = anchor::joined_seeds(&seeds, &anchors, anchor::radius(coarse)).unwrap_or(seeds);
+    let (seeds, mut dist) = joined_seeds(coarse, &centres, &anchors, floor, true, p);
     let s = stable::stable_region(coarse, &mut dist, &seeds, p.theta, floor, &p.stable);
     s.before_flood.map_or(s.reached.len(), |graph| graph.count())
 }
@@ -1299,16 +1316,16 @@ fn segment_stroke(
     negatives: &Negatives,
     p: &SegmentParams,
 ) -> Result<(StrokeRegion, Timings)> {
+    let on_own_grid = std::ptr::eq(cache, owner);
     let mut t = Timings {
         stroke_features_ms: look.ms,
         stroke_pixels: look.pixels,
-        grid: if std::ptr::eq(cache, owner) { 1 } else { cache.factor },
+        grid: if on_own_grid { 1 } else { cache.factor },
         ..Timings::default()
     };
-    let anchors = if std::ptr::eq(cache, owner) {
-        look.anchors.clone()
-    } else {
-        crate::field::coarse::parents(owner.geom.res, cache.factor, &look.anchors)
+    let anchors = match on_own_grid {
+        true => look.anchors.clone(),
+        false => crate::field::coarse::parents(owner.geom.res, cache.factor, &look.anchors),
     };
     let stroke_look = StrokeLook {
         anchors: &anchors,

@@ -647,7 +647,9 @@ impl Trainer {
         if !(self.config.random_background && geometry && self.rays.has_alpha()) {
             return Vec3::from(self.config.background);
         }
-        random_colour(self.config.seed ^ (self.iter as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15))
+        let mut rng =
+            crate::util::SplitMix64::new(self.config.seed ^ (self.iter as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        Vec3::new(rng.unit() as f32, rng.unit() as f32, rng.unit() as f32)
     }
 
     /// One iteration.
@@ -699,7 +701,9 @@ impl Trainer {
                     };
                     let out = forward(model, &ray, &opts, &mut s);
                     ns += out.samples as u64;
-                    let target_rgb = rays.color(ri);
+                    // The photo's colour guides the teacher's upsampling;
+                    // the target is that colour over this step's background.
+                    let photo = rays.color(ri);
                     let d = out.color - rays.color_over(ri, opts.background, composited_on);
                     se += d.length_squared() as f64;
                     let mut g = d * (2.0 / (3.0 * nb));
@@ -708,7 +712,7 @@ impl Trainer {
                         errors.push(d.length_squared() / 3.0);
                     }
                     if let (true, Some(t)) = (fc > 0, teacher) {
-                        let colour = target_rgb.to_array();
+                        let colour = photo.to_array();
                         t.sample_guided(rays.view(ri), rays.pixel(ri), colour, guide, &mut target);
                         for c in 0..fc {
                             let e = s.features[c] - target[c];
@@ -952,13 +956,6 @@ impl Trainer {
     }
 }
 
-/// A uniformly random colour from `seed` (a step's background under
-/// [`TrainConfig::random_background`]).
-fn random_colour(seed: u64) -> Vec3 {
-    let mut rng = crate::util::SplitMix64::new(seed);
-    Vec3::new(rng.unit() as f32, rng.unit() as f32, rng.unit() as f32)
-}
-
 /// The renderer's default sample spacing for a grid: half the smallest
 /// voxel side.
 pub fn step_of(geom: &GridGeom) -> f32 {
@@ -1036,6 +1033,61 @@ mod tests {
             };
             assert!(c.validate().is_err(), "{bad}");
         }
+    }
+
+    /// Photos with alpha train each step over its own random background
+    /// (and a step trains on them); without alpha, with the setting off,
+    /// or while geometry is frozen, over the dataset's.
+    #[test]
+    fn steps_draw_their_own_background_only_where_alpha_is_known() {
+        use crate::camera::{Camera, Intrinsics};
+        use crate::data::Image;
+        let cam = Camera::look_at(
+            Intrinsics::from_fov_x(8, 6, 0.8),
+            Vec3::new(0.0, 0.0, 3.0),
+            Vec3::ZERO,
+            Vec3::Y,
+        );
+        let image = |alpha: bool| Image {
+            width: 8,
+            height: 6,
+            rgb: vec![0.8; 144],
+            alpha: alpha.then(|| vec![0.5; 48]),
+        };
+        let config = TrainConfig {
+            iters: 4,
+            batch: 16,
+            res: 8,
+            coarse_res: 4,
+            stages: 1,
+            ..Default::default()
+        };
+        let bounds = Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0));
+        let trainer = |alpha: bool, config: &TrainConfig| {
+            let rays = RaySet::build(&[(cam, &image(alpha))]).unwrap();
+            Trainer::new(config.clone(), rays, bounds).unwrap()
+        };
+        let white = Vec3::ONE;
+        let mut t = trainer(true, &config);
+        let drawn: Vec<Vec3> = (0..4)
+            .map(|i| {
+                t.iter = i;
+                t.batch_background(true)
+            })
+            .collect();
+        assert!(drawn
+            .iter()
+            .all(|c| c.min_element() >= 0.0 && c.max_element() <= 1.0 && *c != white));
+        assert!(drawn.windows(2).all(|w| w[0] != w[1]), "{drawn:?}");
+        assert_eq!(t.batch_background(false), white, "frozen geometry");
+        t.iter = 0;
+        assert!(t.step().unwrap().loss.is_finite());
+        assert_eq!(trainer(false, &config).batch_background(true), white, "no alpha");
+        let off = TrainConfig {
+            random_background: false,
+            ..config
+        };
+        assert_eq!(trainer(true, &off).batch_background(true), white, "turned off");
     }
 
     #[test]
