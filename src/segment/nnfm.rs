@@ -215,6 +215,20 @@ impl StrokeDistances {
         self.set = CentreSet::new(all);
     }
 
+    /// The solid voxels (σ above `floor`) at distance `t` or less, those
+    /// not measured yet measured first.
+    pub fn solid_within(&mut self, cache: &FeatureCache, floor: f32, t: f32) -> Bitmap {
+        let solid: Vec<usize> = (0..cache.len()).filter(|&r| cache.sigma[r] > floor).collect();
+        let d = self.of_rows(cache, &solid);
+        let mut out = Bitmap::new(cache.geom.res);
+        for (&r, &d) in solid.iter().zip(&d) {
+            if d <= t {
+                out.set(cache.voxels[r] as usize, true);
+            }
+        }
+        out
+    }
+
     /// The distances of `rows`, those not measured yet measured in parallel
     /// (and kept).
     pub fn of_rows(&mut self, cache: &FeatureCache, rows: &[usize]) -> Vec<f32> {
