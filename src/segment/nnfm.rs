@@ -218,13 +218,12 @@ impl StrokeDistances {
     /// The solid voxels (σ above `floor`) at distance `t` or less, those
     /// not measured yet measured first.
     pub fn solid_within(&mut self, cache: &FeatureCache, floor: f32, t: f32) -> Bitmap {
-        let solid: Vec<usize> = (0..cache.len()).filter(|&r| cache.sigma[r] > floor).collect();
-        let d = self.of_rows(cache, &solid);
+        let solid = |r: &usize| cache.sigma[*r] > floor;
+        let missing: Vec<usize> = (0..cache.len()).filter(solid).filter(|&r| self.d[r].is_nan()).collect();
+        self.of_rows(cache, &missing);
         let mut out = Bitmap::new(cache.geom.res);
-        for (&r, &d) in solid.iter().zip(&d) {
-            if d <= t {
-                out.set(cache.voxels[r] as usize, true);
-            }
+        for r in (0..cache.len()).filter(solid).filter(|&r| self.d[r] <= t) {
+            out.set(cache.voxels[r] as usize, true);
         }
         out
     }

@@ -95,11 +95,10 @@ pub struct StableRegion {
 pub const BAND: usize = 4;
 
 /// Bottleneck distances, in flood order: `(b, voxel)` pairs with
-/// non-decreasing b, from the seeds through the voxels of `open` (the
-/// flood's reach: every voxel of it has d ≤ `t_max`), until `settled` says
-/// the keys so far decide everything asked of them (it is shown each
-/// key before it is ordered, and the keys ordered so far) or the reach is
-/// used up.
+/// non-decreasing b, from the seeds through the voxels of `open`
+/// ([`passable`]), until `settled` says the keys so far decide everything
+/// asked of them (it is shown each key before it is ordered, and the keys
+/// ordered so far) or the flood has nowhere left to go.
 fn flood(
     cache: &FeatureCache,
     dist: &mut StrokeDistances,
@@ -152,15 +151,16 @@ fn flood(
     order
 }
 
-/// Every voxel the flood from `seed` reaches by the end, b ≤ `t_max`: the
-/// 26-connected components of the solid voxels with d ≤ `t_max` that hold
-/// a seed (a voxel's bottleneck distance is at most `t_max` exactly when
-/// such a path joins it to a seed). Found over runs of voxels, not by
-/// flooding them in order: the region and threshold need the order only
-/// up to where the region runs into something else, the graph cut's
-/// domain needs all of them (the realistic tabletop's strokes: 260–340k
-/// of its 493k voxels).
-fn reach(cache: &FeatureCache, dist: &mut StrokeDistances, seed: &Bitmap, floor: f32, t_max: f32) -> Bitmap {
+/// The voxels a flood from `seed` may pass through: the solid ones with
+/// d ≤ `t_max`, and the seeds within it; with the seeds in it, to start
+/// from.
+fn passable(
+    cache: &FeatureCache,
+    dist: &mut StrokeDistances,
+    seed: &Bitmap,
+    floor: f32,
+    t_max: f32,
+) -> (Bitmap, Vec<usize>) {
     let mut within = dist.solid_within(cache, floor, t_max);
     let mut starts = vec![];
     for v in seed.ones() {
@@ -171,7 +171,19 @@ fn reach(cache: &FeatureCache, dist: &mut StrokeDistances, seed: &Bitmap, floor:
             }
         }
     }
-    Runs::of(&within).components_of(starts)
+    (within, starts)
+}
+
+/// Every voxel the flood from the seeds `starts` reaches by the end
+/// (b ≤ `t_max`) when it stopped before: the 26-connected components of
+/// the [`passable`] voxels that hold a seed (a voxel's bottleneck distance
+/// is at most `t_max` exactly when such a path joins it to a seed). Found
+/// over runs of voxels, not by flooding them in order: the region and
+/// threshold need the order only up to where the region runs into
+/// something else, the graph cut's domain needs all of them (the
+/// realistic tabletop's strokes: 260–340k of its 493k voxels).
+fn reach(passable: &Bitmap, starts: Vec<usize>) -> Bitmap {
+    Runs::of(passable).components_of(starts)
 }
 
 /// Says when the flood's keys so far settle [`stable_threshold`] and
@@ -185,6 +197,8 @@ struct Settles<'a> {
     next: Option<f32>,
     theta_searched: bool,
     level_found: bool,
+    /// Whether it said so (the flood stopped before its end).
+    stopped: bool,
     p: &'a StableParams,
 }
 
@@ -197,6 +211,7 @@ impl<'a> Settles<'a> {
             next,
             theta_searched: false,
             level_found: false,
+            stopped: false,
             p,
         }
     }
@@ -208,6 +223,7 @@ impl<'a> Settles<'a> {
             self.theta_searched |= w.growth > self.p.flood_growth;
             self.level_found |= w.jumps;
             if self.theta_searched && self.level_found {
+                self.stopped = true;
                 return true;
             }
             self.next = self.thresholds.next();
@@ -390,11 +406,17 @@ pub fn stable_region(
     floor: f32,
     p: &StableParams,
 ) -> StableRegion {
-    let bits = reach(cache, dist, seed, floor, p.t_max);
+    let (within, starts) = passable(cache, dist, seed, floor, p.t_max);
     let mut settles = Settles::new(theta, p);
-    let order = flood(cache, dist, seed, bits.clone(), p.t_max, |key, order| {
+    let order = flood(cache, dist, seed, within.clone(), p.t_max, |key, order| {
         settles.settled(key, order)
     });
+    // A flood that ran to the end ordered its whole reach.
+    let bits = if settles.stopped {
+        reach(&within, starts)
+    } else {
+        Bitmap::from_ones(cache.geom.res, &order.iter().map(|o| o.1).collect::<Vec<_>>())
+    };
     let keys: Vec<f32> = order.iter().map(|o| o.0).collect();
     let threshold = stable_threshold(&keys, theta, p);
     let mut region = seed.clone();
@@ -482,8 +504,9 @@ mod tests {
         for (theta, t_max) in [(0.1f32, 1.5f32), (0.3, 0.8), (0.05, 4.0)] {
             let (seed, mut dist) = nnfm_seed_with_distances(&cache, &centres, theta, 0.5);
             assert!(seed.any());
-            let open = reach(&cache, &mut dist, &seed, 0.5, t_max);
-            let order = flood(&cache, &mut dist, &seed, open.clone(), t_max, |_, _| false);
+            let (within, starts) = passable(&cache, &mut dist, &seed, 0.5, t_max);
+            let open = reach(&within, starts);
+            let order = flood(&cache, &mut dist, &seed, within, t_max, |_, _| false);
             let ordered: Vec<u32> = order.iter().map(|o| o.1).collect();
             assert_eq!(ordered.len(), open.count());
             assert_eq!(
@@ -511,8 +534,9 @@ mod tests {
         floor: f32,
         p: &StableParams,
     ) -> StableRegion {
-        let bits = reach(cache, dist, seed, floor, p.t_max);
-        let order = flood(cache, dist, seed, bits.clone(), p.t_max, |_, _| false);
+        let (within, _) = passable(cache, dist, seed, floor, p.t_max);
+        let order = flood(cache, dist, seed, within, p.t_max, |_, _| false);
+        let bits = Bitmap::from_ones(cache.geom.res, &order.iter().map(|o| o.1).collect::<Vec<_>>());
         let keys: Vec<f32> = order.iter().map(|o| o.0).collect();
         let threshold = stable_threshold(&keys, theta, p);
         let mut region = seed.clone();
