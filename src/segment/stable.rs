@@ -415,8 +415,27 @@ pub fn stable_region(
     let bits = if settles.stopped {
         reach(&within, starts)
     } else {
-        Bitmap::from_ones(cache.geom.res, &order.iter().map(|o| o.1).collect::<Vec<_>>())
+        ordered_voxels(cache, &order)
     };
+    settle(cache, seed, &order, bits, theta, p)
+}
+
+/// The voxels of a flood's `order`, as a bitmap.
+fn ordered_voxels(cache: &FeatureCache, order: &[(f32, u32)]) -> Bitmap {
+    Bitmap::from_ones(cache.geom.res, &order.iter().map(|o| o.1).collect::<Vec<_>>())
+}
+
+/// The stable region of the flood from `seed` whose keys in order (at
+/// least as far as they settle the threshold and the flood level) are
+/// `order`, and whose whole reach is `bits`.
+fn settle(
+    cache: &FeatureCache,
+    seed: &Bitmap,
+    order: &[(f32, u32)],
+    bits: Bitmap,
+    theta: f32,
+    p: &StableParams,
+) -> StableRegion {
     let keys: Vec<f32> = order.iter().map(|o| o.0).collect();
     let threshold = stable_threshold(&keys, theta, p);
     let mut region = seed.clone();
@@ -536,22 +555,7 @@ mod tests {
     ) -> StableRegion {
         let (within, _) = passable(cache, dist, seed, floor, p.t_max);
         let order = flood(cache, dist, seed, within, p.t_max, |_, _| false);
-        let bits = Bitmap::from_ones(cache.geom.res, &order.iter().map(|o| o.1).collect::<Vec<_>>());
-        let keys: Vec<f32> = order.iter().map(|o| o.0).collect();
-        let threshold = stable_threshold(&keys, theta, p);
-        let mut region = seed.clone();
-        for &(_, v) in order.iter().take_while(|o| o.0 <= threshold) {
-            region.set(v as usize, true);
-        }
-        let before_flood = flood_level(&keys, theta, p)
-            .map(|level| band_around(cache, &order[..keys.partition_point(|&b| b <= level)], &bits, BAND));
-        StableRegion {
-            region,
-            threshold,
-            reached: bits.ones().map(|v| v as u32).collect(),
-            before_flood,
-            flooded: order.len(),
-        }
+        settle(cache, seed, &order, ordered_voxels(cache, &order), theta, p)
     }
 
     #[test]
