@@ -143,7 +143,7 @@ pub struct StrokeSamples {
 /// weighted mean, which the last tenth of a percent does not move. A
 /// grazing ray over a hazy floor shades a hundred faint samples past that
 /// point, each reading 64 feature channels: the realistic tabletop's floor
-/// stroke took 45–48 ms to read (26–37 ms now), its table 15 ms (6–7).
+/// stroke took 39–48 ms to read (26–37 ms now), its table 13–16 ms (6–9).
 /// The benchmarks do not move beyond the third digit (`isrf bench
 /// quality`: the floor, the table and the shelf each −0.001, the same
 /// means; `isrf bench splats`: the same means; fern NVOS 0.8281 → 0.8292;
