@@ -191,10 +191,7 @@ pub fn run(a: Args) -> Result<()> {
         } else {
             format!("{} steps", t.grow_steps)
         };
-        let grid = match t.grid {
-            0 | 1 => String::new(),
-            f => format!(" on the {f}× coarser grid"),
-        };
+        let grid = t.grid_note();
         println!(
             "stroke {i} ({:?}, '{}', {} px){grid}: features {:.1} ms, k-means {:.1} ms, nnfm {:.1} ms ({} seeds), growth {:.1} ms ({growth}), cut {:.1} ms -> {} voxels; total {:.1} ms",
             s.polarity, s.object, t.stroke_pixels, t.stroke_features_ms, t.kmeans_ms, t.nnfm_ms, t.seed_voxels, t.grow_ms, t.cut_ms, t.region_voxels, t.total_ms()

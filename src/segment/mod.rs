@@ -343,6 +343,14 @@ impl Timings {
     pub fn total_ms(&self) -> f64 {
         self.stroke_features_ms + self.kmeans_ms + self.nnfm_ms + self.grow_ms + self.cut_ms
     }
+    /// " on the f× coarser grid" when the stroke was segmented on a coarse
+    /// copy, else nothing (for the lines that report a stroke).
+    pub fn grid_note(&self) -> String {
+        match self.grid {
+            0 | 1 => String::new(),
+            f => format!(" on the {f}× coarser grid"),
+        }
+    }
 }
 
 /// Centres of a set of unit stroke features: K-means over the fraction

@@ -193,40 +193,38 @@ fn reach(passable: &Bitmap, starts: Vec<usize>) -> Bitmap {
 /// flood level). Once the flood's next key is past t + δ for such a t
 /// (for both), the keys so far give both the answers all keys would.
 struct Settles<'a> {
-    thresholds: Box<dyn Iterator<Item = f32> + 'a>,
-    next: Option<f32>,
+    /// The thresholds not looked at yet.
+    thresholds: std::iter::Peekable<Box<dyn Iterator<Item = f32> + 'a>>,
     theta_searched: bool,
     level_found: bool,
-    /// Whether it said so (the flood stopped before its end).
-    stopped: bool,
     p: &'a StableParams,
 }
 
 impl<'a> Settles<'a> {
     fn new(theta: f32, p: &'a StableParams) -> Self {
-        let mut thresholds = Box::new(thresholds(theta, p));
-        let next = thresholds.next();
+        let thresholds: Box<dyn Iterator<Item = f32> + 'a> = Box::new(thresholds(theta, p));
         Settles {
-            thresholds,
-            next,
+            thresholds: thresholds.peekable(),
             theta_searched: false,
             level_found: false,
-            stopped: false,
             p,
         }
+    }
+    /// Whether both are settled (the flood stops there, before its end).
+    fn both(&self) -> bool {
+        self.theta_searched && self.level_found
     }
     /// Whether the keys of `order` (every key below `key`) settle both.
     fn settled(&mut self, key: f32, order: &[(f32, u32)]) -> bool {
         let count = |t: f32| order.partition_point(|o| o.0 <= t) as f32;
-        while let Some(t) = self.next.filter(|&t| t + self.p.delta < key) {
+        let delta = self.p.delta;
+        while let Some(t) = self.thresholds.next_if(|&t| t + delta < key) {
             let w = window(count, t, self.p);
             self.theta_searched |= w.growth > self.p.flood_growth;
             self.level_found |= w.jumps;
-            if self.theta_searched && self.level_found {
-                self.stopped = true;
+            if self.both() {
                 return true;
             }
-            self.next = self.thresholds.next();
         }
         false
     }
@@ -412,7 +410,7 @@ pub fn stable_region(
         settles.settled(key, order)
     });
     // A flood that ran to the end ordered its whole reach.
-    let bits = if settles.stopped {
+    let bits = if settles.both() {
         reach(&within, starts)
     } else {
         ordered_voxels(cache, &order)
@@ -543,21 +541,6 @@ mod tests {
         }
     }
 
-    /// What [`stable_region`] gives when the flood orders every voxel of
-    /// its reach (as it did before it stopped once the region settled).
-    fn whole_flood_region(
-        cache: &FeatureCache,
-        dist: &mut StrokeDistances,
-        seed: &Bitmap,
-        theta: f32,
-        floor: f32,
-        p: &StableParams,
-    ) -> StableRegion {
-        let (within, _) = passable(cache, dist, seed, floor, p.t_max);
-        let order = flood(cache, dist, seed, within, p.t_max, |_, _| false);
-        settle(cache, seed, &order, ordered_voxels(cache, &order), theta, p)
-    }
-
     #[test]
     fn the_flood_stops_once_the_region_is_settled_with_the_same_answer() {
         // A small block pushed against a large one (the pot on the
@@ -595,8 +578,15 @@ mod tests {
         let centres = Centroids { dim: 4, data: unit };
         let p = StableParams::default();
         let (seed, mut dist) = nnfm_seed_with_distances(&cache, &centres, 0.05, 0.5);
+        // What `stable_region` gives when the flood orders every voxel of
+        // its reach (as it did before it stopped once the region settled).
+        let whole_flood_region = |dist: &mut StrokeDistances, p: &StableParams| {
+            let (within, _) = passable(&cache, dist, &seed, 0.5, p.t_max);
+            let order = flood(&cache, dist, &seed, within, p.t_max, |_, _| false);
+            settle(&cache, &seed, &order, ordered_voxels(&cache, &order), 0.05, p)
+        };
         let got = stable_region(&cache, &mut dist, &seed, 0.05, 0.5, &p);
-        let want = whole_flood_region(&cache, &mut dist, &seed, 0.05, 0.5, &p);
+        let want = whole_flood_region(&mut dist, &p);
         assert!(want.before_flood.is_some(), "the flood runs into the large block");
         assert!(
             3 * got.flooded < 2 * want.flooded,
@@ -612,7 +602,7 @@ mod tests {
         // t_max), the whole reach is ordered.
         let p = StableParams { t_max: 0.9, ..p };
         let got = stable_region(&cache, &mut dist, &seed, 0.05, 0.5, &p);
-        let want = whole_flood_region(&cache, &mut dist, &seed, 0.05, 0.5, &p);
+        let want = whole_flood_region(&mut dist, &p);
         assert_eq!(
             (got.threshold, &got.region, &got.reached),
             (want.threshold, &want.region, &want.reached)

@@ -781,10 +781,7 @@ fn status_line(
         ui.label(&state.status);
         if let Some(t) = &state.last_timings {
             ui.separator();
-            let grid = match t.grid {
-                0 | 1 => String::new(),
-                f => format!(" on the {f}× coarser grid"),
-            };
+            let grid = t.grid_note();
             ui.label(format!(
                 "last stroke{grid}: features {:.0} ms · k-means {:.0} ms · NNFM {:.0} ms · growth {:.0} ms ({} steps) · cut {:.0} ms · total {:.0} ms",
                 t.stroke_features_ms,
