@@ -79,35 +79,54 @@ impl CentreBlocks {
     /// centre (infinite with one centre).
     fn nearest2(&self, p: &[f32]) -> (usize, f32, f32) {
         let mut best = (0, f32::INFINITY, f32::INFINITY);
-        self.sums(
-            p,
-            |c, x| (c - x) * (c - x),
-            |k, d| {
-                if d < best.1 {
-                    best = (k, d, best.1);
-                } else if d < best.2 {
-                    best.2 = d;
-                }
-            },
-        );
+        self.each_distance(p, |k, d| {
+            if d < best.1 {
+                best = (k, d, best.1);
+            } else if d < best.2 {
+                best.2 = d;
+            }
+        });
         best
+    }
+
+    /// Calls `f(k, |p − c_k|²)` for every centre in order (each summed
+    /// over the channels in order, as [`dist2`]), up to [`GROUP`] blocks of
+    /// centres at a time ([`lane_distances`]).
+    #[inline(always)]
+    fn each_distance(&self, p: &[f32], mut f: impl FnMut(usize, f32)) {
+        let stride = self.dim * LANES;
+        let blocks = self.data.len() / stride.max(1);
+        let mut b = 0;
+        while b < blocks {
+            let data = &self.data[b * stride..];
+            let (dim, first) = (self.dim, b * LANES);
+            b += match blocks - b {
+                1 => self.emit(first, lane_distances::<1>(data, dim, p), &mut f),
+                2 => self.emit(first, lane_distances::<2>(data, dim, p), &mut f),
+                3 => self.emit(first, lane_distances::<3>(data, dim, p), &mut f),
+                _ => self.emit(first, lane_distances::<GROUP>(data, dim, p), &mut f),
+            };
+        }
+    }
+
+    /// Hands the distances of `G` blocks from centre `first` to `f` (the
+    /// padding lanes of the last block left out); returns `G`.
+    #[inline(always)]
+    fn emit<const G: usize>(&self, first: usize, d: [[f32; LANES]; G], f: &mut impl FnMut(usize, f32)) -> usize {
+        for (i, &d) in d.iter().flatten().enumerate().take(self.k.saturating_sub(first)) {
+            f(first + i, d);
+        }
+        G
     }
 
     /// Calls `f(k, p·c_k)` for every centre in order, each dot product
     /// summed over the channels in order (as a plain zip-sum would be).
-    pub(crate) fn dots(&self, p: &[f32], f: impl FnMut(usize, f32)) {
-        self.sums(p, |c, x| x * c, f);
-    }
-
-    /// Calls `f(k, Σ_j term(c_kj, p_j))` for every centre k in order, the
-    /// sum taken over the channels in order, a block of centres at a time.
-    #[inline(always)]
-    fn sums(&self, p: &[f32], term: impl Fn(f32, f32) -> f32, mut f: impl FnMut(usize, f32)) {
+    pub(crate) fn dots(&self, p: &[f32], mut f: impl FnMut(usize, f32)) {
         for (b, block) in self.data.chunks_exact((self.dim * LANES).max(1)).enumerate() {
             let mut acc = [0.0f32; LANES];
             for (lanes, &x) in block.chunks_exact(LANES).zip(p) {
                 for l in 0..LANES {
-                    acc[l] += term(lanes[l], x);
+                    acc[l] += x * lanes[l];
                 }
             }
             for (l, &d) in acc.iter().enumerate().take(self.k - b * LANES) {
@@ -116,6 +135,79 @@ impl CentreBlocks {
         }
     }
 }
+
+/// Per lane l of each of the `G` blocks at the start of `blocks` (each
+/// `dim` rows of [`LANES`] values), Σ_j (block_jl − x_j)², summed over j in
+/// order as [`dist2`] sums it: a lane is a centre against a point
+/// ([`CentreBlocks`]) or a point against a centre ([`PointLanes`]). With
+/// AVX2 the `G` blocks are summed side by side, eight lanes to an
+/// instruction ([`avx2::lane_distances`]): one block's sum is a chain of
+/// dependent adds, bound by the add's latency, and a background model's
+/// twenty centres are three chains that overlap. (Written portably, LLVM
+/// shuffled the side-by-side accumulators through the stack and ran
+/// slower than one block at a time.)
+#[inline(always)]
+fn lane_distances<const G: usize>(blocks: &[f32], dim: usize, x: &[f32]) -> [[f32; LANES]; G] {
+    assert!(blocks.len() >= G * dim * LANES && x.len() >= dim);
+    #[cfg(target_arch = "x86_64")]
+    if crate::util::has_avx2() {
+        // SAFETY: the CPU has AVX2, and the lengths are checked above.
+        return unsafe { avx2::lane_distances::<G>(blocks, dim, x) };
+    }
+    portable_lane_distances(blocks, dim, x)
+}
+
+/// [`lane_distances`] on any CPU, one block at a time.
+#[inline(always)]
+fn portable_lane_distances<const G: usize>(blocks: &[f32], dim: usize, x: &[f32]) -> [[f32; LANES]; G] {
+    std::array::from_fn(|g| {
+        let mut acc = [0.0f32; LANES];
+        for (lanes, &xj) in blocks[g * dim * LANES..(g + 1) * dim * LANES]
+            .chunks_exact(LANES)
+            .zip(x)
+        {
+            for l in 0..LANES {
+                let e = lanes[l] - xj;
+                acc[l] += e * e;
+            }
+        }
+        acc
+    })
+}
+
+/// [`lane_distances`] with AVX2 intrinsics: per lane the same subtraction,
+/// product and sum in the same order (no fused multiply-add), so bit for
+/// bit the portable results.
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::LANES;
+    use std::arch::x86_64::*;
+
+    /// # Safety
+    /// The CPU must have AVX2; `blocks` holds at least `G · dim · LANES`
+    /// values and `x` at least `dim`.
+    #[target_feature(enable = "avx2")]
+    pub unsafe fn lane_distances<const G: usize>(blocks: &[f32], dim: usize, x: &[f32]) -> [[f32; LANES]; G] {
+        const _: () = assert!(LANES == 8);
+        let b = blocks.as_ptr();
+        let mut acc = [_mm256_setzero_ps(); G];
+        for j in 0..dim {
+            let xj = _mm256_set1_ps(*x.get_unchecked(j));
+            for (g, a) in acc.iter_mut().enumerate() {
+                let e = _mm256_sub_ps(_mm256_loadu_ps(b.add((g * dim + j) * LANES)), xj);
+                *a = _mm256_add_ps(*a, _mm256_mul_ps(e, e));
+            }
+        }
+        let mut out = [[0.0f32; LANES]; G];
+        for (o, a) in out.iter_mut().zip(acc) {
+            _mm256_storeu_ps(o.as_mut_ptr(), a);
+        }
+        out
+    }
+}
+
+/// Blocks of centres (or groups of points) summed side by side.
+const GROUP: usize = 4;
 
 /// When Lloyd iterations stop: when no assignment changes, after
 /// `max_iters`, or (with `tol` > 0) once no centre moved farther than `tol`
@@ -150,7 +242,8 @@ pub fn kmeans_until(points: &[f32], dim: usize, k: usize, seed: u64, stop: Stop)
     // k-means++: first centre uniformly, then proportional to squared distance.
     let mut centres: Vec<f32> = row(rng.below(n)).to_vec();
     let mut d2 = vec![f32::INFINITY; n];
-    nearer_of(points, dim, &centres[..dim], &mut d2);
+    let lanes = PointLanes::new(points, dim);
+    nearer_of(&lanes, &centres[..dim], &mut d2);
     while centres.len() / dim < k {
         let total: f64 = d2.iter().map(|&d| d as f64).sum();
         if total <= 1e-12 {
@@ -167,38 +260,62 @@ pub fn kmeans_until(points: &[f32], dim: usize, k: usize, seed: u64, stop: Stop)
         }
         let start = centres.len();
         centres.extend_from_slice(row(pick));
-        nearer_of(points, dim, &centres[start..], &mut d2);
+        nearer_of(&lanes, &centres[start..], &mut d2);
     }
     lloyd(points, dim, centres, stop)
 }
 
-/// Lowers each `d2[i]` to point i's squared distance to `c` (as
-/// [`dist2`] sums it), in parallel. Eight points are summed side by side:
-/// one point's sum is a chain of dependent adds, and k-means++ made K
-/// passes of them (10 ms of a fern background fit).
-fn nearer_of(points: &[f32], dim: usize, c: &[f32], d2: &mut [f32]) {
-    d2.par_chunks_mut(MIN_TASK).enumerate().for_each(|(t, d)| {
-        let base = t * MIN_TASK;
-        let done = d.len() / LANES * LANES;
-        for (g, out) in d.chunks_exact_mut(LANES).enumerate() {
-            let at = (base + g * LANES) * dim;
-            let rows: [&[f32]; LANES] = std::array::from_fn(|l| &points[at + l * dim..at + (l + 1) * dim]);
-            let mut acc = [0.0f32; LANES];
-            for (j, &cj) in c.iter().enumerate() {
-                for l in 0..LANES {
-                    let e = rows[l][j] - cj;
-                    acc[l] += e * e;
-                }
-            }
-            for (o, a) in out.iter_mut().zip(acc) {
-                *o = o.min(a);
+/// Points transposed into groups of [`LANES`] (channel-major within a
+/// group, the last group padded with zeros), so that a k-means++ pass
+/// loads one channel of eight points as one vector: gathered from eight
+/// rows, the loads bound the K passes (10 ms of a fern background fit).
+struct PointLanes {
+    dim: usize,
+    data: Vec<f32>,
+}
+
+impl PointLanes {
+    fn new(points: &[f32], dim: usize) -> Self {
+        let n = points.len() / dim.max(1);
+        let mut data = vec![0.0; n.div_ceil(LANES) * dim * LANES];
+        for (i, row) in points.chunks_exact(dim.max(1)).enumerate() {
+            let (g, lane) = (i / LANES, i % LANES);
+            for (j, &v) in row.iter().enumerate() {
+                data[(g * dim + j) * LANES + lane] = v;
             }
         }
-        for (i, o) in d.iter_mut().enumerate().skip(done) {
-            let at = (base + i) * dim;
-            *o = o.min(dist2(&points[at..at + dim], c));
+        PointLanes { dim, data }
+    }
+}
+
+/// Lowers each `d2[i]` to point i's squared distance to `c` (as [`dist2`]
+/// sums it: each lane adds its channels in order), in parallel, up to
+/// [`GROUP`] groups of points side by side (one group's sum is a chain of
+/// dependent adds).
+fn nearer_of(points: &PointLanes, c: &[f32], d2: &mut [f32]) {
+    const _: () = assert!(MIN_TASK % (LANES * GROUP) == 0);
+    d2.par_chunks_mut(MIN_TASK).enumerate().for_each(|(t, d)| {
+        let first = t * MIN_TASK / LANES;
+        for (q, out) in d.chunks_mut(LANES * GROUP).enumerate() {
+            let at = first + q * GROUP;
+            match out.len().div_ceil(LANES) {
+                1 => nearer_group::<1>(points, at, c, out),
+                2 => nearer_group::<2>(points, at, c, out),
+                3 => nearer_group::<3>(points, at, c, out),
+                _ => nearer_group::<GROUP>(points, at, c, out),
+            }
         }
     });
+}
+
+/// [`nearer_of`] over the `G` groups of points from group `first`, whose
+/// distances `out` holds (the last one perhaps in part).
+#[inline(always)]
+fn nearer_group<const G: usize>(points: &PointLanes, first: usize, c: &[f32], out: &mut [f32]) {
+    let d = lane_distances::<G>(&points.data[first * points.dim * LANES..], points.dim, c);
+    for (o, a) in out.iter_mut().zip(d.iter().flatten()) {
+        *o = o.min(*a);
+    }
 }
 
 /// Lloyd iterations over `points` started from `start` (the centres of a
@@ -464,7 +581,7 @@ mod tests {
             let c: Vec<f32> = (0..dim).map(|_| rng.unit() as f32 - 0.5).collect();
             let before: Vec<f32> = (0..n).map(|i| if i % 3 == 0 { 0.25 } else { f32::INFINITY }).collect();
             let mut got = before.clone();
-            nearer_of(&points, dim, &c, &mut got);
+            nearer_of(&PointLanes::new(&points, dim), &c, &mut got);
             for i in 0..n {
                 let want = before[i].min(dist2(&points[i * dim..(i + 1) * dim], &c));
                 assert_eq!(got[i].to_bits(), want.to_bits(), "n {n}, dim {dim}, point {i}");
@@ -597,9 +714,40 @@ mod tests {
     }
 
     #[test]
+    fn the_avx2_lane_distances_are_the_portable_ones_bit_for_bit() {
+        if !crate::util::has_avx2() {
+            eprintln!("skipped: this CPU has no AVX2");
+            return;
+        }
+        let mut rng = SplitMix64::new(13);
+        for dim in [1, 3, 64] {
+            let blocks: Vec<f32> = (0..4 * dim * LANES).map(|_| rng.unit() as f32 - 0.5).collect();
+            let x: Vec<f32> = (0..dim).map(|_| rng.unit() as f32 - 0.5).collect();
+            fn bits<const G: usize>(d: [[f32; LANES]; G]) -> Vec<u32> {
+                d.iter().flatten().map(|v| v.to_bits()).collect()
+            }
+            // SAFETY: AVX2 is checked above; the lengths hold four blocks.
+            unsafe {
+                let one = avx2::lane_distances::<1>(&blocks, dim, &x);
+                assert_eq!(
+                    bits(one),
+                    bits(portable_lane_distances::<1>(&blocks, dim, &x)),
+                    "dim {dim}"
+                );
+                let four = avx2::lane_distances::<4>(&blocks, dim, &x);
+                assert_eq!(
+                    bits(four),
+                    bits(portable_lane_distances::<4>(&blocks, dim, &x)),
+                    "dim {dim}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn blocked_nearest_centre_is_the_plain_scan_to_the_bit() {
         let mut rng = SplitMix64::new(7);
-        for (k, dim) in [(1, 3), (7, 5), (8, 64), (9, 64), (20, 64), (17, 3)] {
+        for (k, dim) in [(1, 3), (7, 5), (8, 64), (9, 64), (20, 64), (17, 3), (41, 64)] {
             let centres: Vec<f32> = (0..k * dim).map(|_| rng.unit() as f32 - 0.5).collect();
             let blocks = CentreBlocks::new(&centres, dim);
             for i in 0..200 {
