@@ -117,6 +117,8 @@ pub struct CutInput<'a> {
     /// The solid voxels the cut may label object (every other voxel is
     /// background), ascending.
     pub domain: &'a [u32],
+    /// The domain voxels' cache rows ([`rows_of`]).
+    pub rows: &'a [usize],
     /// The domain voxels the graph labels, when not all of them: the rest
     /// stay background and feed the background models, but are not in the
     /// graph ([`super::stable::StableRegion::before_flood`]; edges from
@@ -153,33 +155,29 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
     let cache = input.cache;
     let t0 = Instant::now();
     let n = input.domain.len();
-    let rows = rows_of(cache, input.domain);
+    let rows = input.rows;
     let d_obj = input.object_distance;
     debug_assert_eq!(d_obj.len(), n);
+    debug_assert_eq!(rows.len(), n);
+    // The bookkeeping below runs over the whole domain (300k voxels for a
+    // mug on the tabletop, whose graph has 3k nodes): in parallel, each
+    // list in domain order as one loop would build it.
     let kept_out = |i: usize| input.not_background.get(i).copied().unwrap_or(false);
-    let unlike: Vec<bool> = (d_obj.iter().enumerate())
+    let unlike: Vec<bool> = (d_obj.par_iter().enumerate())
         .map(|(i, &d)| d > input.unlike && !kept_out(i))
         .collect();
-    let mut node_of_row = vec![u32::MAX; cache.len()];
-    for (i, &r) in rows.iter().enumerate() {
-        node_of_row[r] = i as u32;
-    }
-    // Flag the domain nodes of a voxel set (a lookup per voxel of the set,
-    // not a search per domain voxel).
+    // Flag the domain nodes of a voxel set (a search in the ascending
+    // domain per voxel of the set, which is small).
     let flags = |set: &[u32]| -> Vec<bool> {
         let mut out = vec![false; n];
-        let nodes = set
-            .iter()
-            .filter_map(|&v| cache.index.slot(v as usize))
-            .map(|r| node_of_row[r]);
-        for i in nodes.filter(|&i| i != u32::MAX) {
-            out[i as usize] = true;
+        for i in set.iter().filter_map(|v| input.domain.binary_search(v).ok()) {
+            out[i] = true;
         }
         out
     };
     let (under, under_negative) = (flags(input.hard), flags(input.background_hard));
     // A stroke covers a few hundred voxels of one or two materials.
-    let sub = Subgraph::new(input, &rows, &node_of_row);
+    let sub = Subgraph::new(input, cache.len());
     // The colour terms are wanted for the graph's nodes only (the domain
     // past the graph is background whatever they say).
     let (col_obj, _) = colour_term(
@@ -207,12 +205,15 @@ pub fn refine(input: &CutInput, p: &CutParams, kmeans_seed: u64, t: &mut CutTimi
         let seed = kmeans_seed + round as u64;
         t.rounds += 1;
         let t0 = Instant::now();
-        let outside: Vec<bool> = (0..n).map(|i| (!region[i] && unlike[i]) || under_negative[i]).collect();
+        let outside: Vec<bool> = (0..n)
+            .into_par_iter()
+            .map(|i| (!region[i] && unlike[i]) || under_negative[i])
+            .collect();
         // The feature and colour models side by side: each K-means is a
         // few thousand rows, too few to keep both cores busy on its own.
         let warm = last_colours.take();
         let (fitted, (col_bg, fitted_colours)) = rayon::join(
-            || background_centres(cache, &rows, &outside, p.background_k, seed, last_fit.as_ref()),
+            || background_centres(cache, rows, &outside, p.background_k, seed, last_fit.as_ref()),
             || {
                 let (k, gamma) = (p.background_k, p.colour_unary);
                 colour_term(input.colours, &outside, &sub.colours, k, seed, gamma, warm)
@@ -292,36 +293,42 @@ struct Subgraph<'a> {
     domain: Cow<'a, [u32]>,
     rows: Cow<'a, [usize]>,
     colours: Cow<'a, [Vec3]>,
-    node_of_row: Cow<'a, [u32]>,
+    node_of_row: Vec<u32>,
 }
 
 impl<'a> Subgraph<'a> {
-    /// `rows` and `node_of_row`: the domain's cache rows and each cache
-    /// row's domain index.
-    fn new(input: &CutInput<'a>, rows: &'a [usize], node_of_row: &'a [u32]) -> Self {
-        let n = input.domain.len();
-        let Some(graph) = input.graph else {
-            return Subgraph {
-                nodes: (0..n).collect(),
-                domain: Cow::Borrowed(input.domain),
-                rows: Cow::Borrowed(rows),
-                colours: Cow::Borrowed(input.colours),
-                node_of_row: Cow::Borrowed(node_of_row),
-            };
+    /// The subgraph of `input`'s domain, whose cache has `cache_rows` rows.
+    fn new(input: &CutInput<'a>, cache_rows: usize) -> Self {
+        let (n, rows) = (input.domain.len(), input.rows);
+        let (nodes, domain, rows, colours) = match input.graph {
+            None => (
+                (0..n).collect(),
+                Cow::Borrowed(input.domain),
+                Cow::Borrowed(rows),
+                Cow::Borrowed(input.colours),
+            ),
+            Some(graph) => {
+                let nodes: Vec<usize> = (0..n)
+                    .into_par_iter()
+                    .filter(|&i| graph.get(input.domain[i] as usize))
+                    .collect();
+                // No colours (features only) stay none.
+                let colours = nodes.iter().filter_map(|&i| input.colours.get(i).copied()).collect();
+                let domain = nodes.iter().map(|&i| input.domain[i]).collect();
+                let rows = nodes.iter().map(|&i| rows[i]).collect();
+                (nodes, Cow::Owned(domain), Cow::Owned(rows), Cow::Owned(colours))
+            }
         };
-        let nodes: Vec<usize> = (0..n).filter(|&i| graph.get(input.domain[i] as usize)).collect();
-        let mut of_row = vec![u32::MAX; node_of_row.len()];
-        for (k, &i) in nodes.iter().enumerate() {
-            of_row[rows[i]] = k as u32;
+        let mut node_of_row = vec![u32::MAX; cache_rows];
+        for (k, &r) in rows.iter().enumerate() {
+            node_of_row[r] = k as u32;
         }
-        // No colours (features only) stay none.
-        let colours = nodes.iter().filter_map(|&i| input.colours.get(i).copied()).collect();
         Subgraph {
-            domain: Cow::Owned(nodes.iter().map(|&i| input.domain[i]).collect()),
-            rows: Cow::Owned(nodes.iter().map(|&i| rows[i]).collect()),
-            colours: Cow::Owned(colours),
-            node_of_row: Cow::Owned(of_row),
             nodes,
+            domain,
+            rows,
+            colours,
+            node_of_row,
         }
     }
 }
@@ -329,7 +336,7 @@ impl<'a> Subgraph<'a> {
 /// The cache rows of domain voxels (which are solid).
 pub fn rows_of(cache: &FeatureCache, domain: &[u32]) -> Vec<usize> {
     domain
-        .iter()
+        .par_iter()
         .map(|&v| cache.index.slot(v as usize).expect("domain voxels are solid"))
         .collect()
 }
@@ -348,8 +355,11 @@ fn with_known(fitted: Option<Centroids>, known: Option<&Centroids>) -> Option<Ce
 }
 
 /// The items whose flag is set.
-fn flagged<T: Copy>(items: &[T], flags: &[bool]) -> Vec<T> {
-    items.iter().zip(flags).filter(|(_, &f)| f).map(|(&x, _)| x).collect()
+fn flagged<T: Copy + Send + Sync>(items: &[T], flags: &[bool]) -> Vec<T> {
+    (items.par_iter().zip(flags))
+        .filter(|(_, &f)| f)
+        .map(|(&x, _)| x)
+        .collect()
 }
 
 /// K-means centres (at most `k`, or started from `warm`) of the flagged
@@ -595,6 +605,7 @@ mod tests {
         let (cache, domain, colours) = bar_cache();
         let res = cache.geom.res;
         let zeros = vec![0.0; domain.len()];
+        let rows = rows_of(&cache, &domain);
         let region = Bitmap::new(res);
         for slice in [0, 23] {
             let hard: Vec<u32> = domain
@@ -605,6 +616,7 @@ mod tests {
             let input = CutInput {
                 cache: &cache,
                 domain: &domain,
+                rows: &rows,
                 graph: None,
                 colours: &colours,
                 object_distance: &zeros,
@@ -640,10 +652,12 @@ mod tests {
             dim: 2,
             data: vec![1.0, 0.0],
         });
-        let object_distance = object.min_distances(&cache, &rows_of(&cache, &domain));
+        let rows = rows_of(&cache, &domain);
+        let object_distance = object.min_distances(&cache, &rows);
         let input = CutInput {
             cache: &cache,
             domain: &domain,
+            rows: &rows,
             graph: None,
             colours: &colours,
             object_distance: &object_distance,

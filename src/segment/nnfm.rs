@@ -231,11 +231,11 @@ impl StrokeDistances {
     /// The distances of `rows`, those not measured yet measured in parallel
     /// (and kept).
     pub fn of_rows(&mut self, cache: &FeatureCache, rows: &[usize]) -> Vec<f32> {
-        let missing: Vec<usize> = rows.iter().copied().filter(|&r| self.d[r].is_nan()).collect();
+        let missing: Vec<usize> = rows.par_iter().copied().filter(|&r| self.d[r].is_nan()).collect();
         for (r, d) in missing.iter().zip(self.set.min_distances(cache, &missing)) {
             self.d[*r] = d;
         }
-        rows.iter().map(|&r| self.d[r]).collect()
+        rows.par_iter().map(|&r| self.d[r]).collect()
     }
 }
 
