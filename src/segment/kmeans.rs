@@ -713,6 +713,7 @@ mod tests {
         );
     }
 
+    #[cfg(target_arch = "x86_64")]
     #[test]
     fn the_avx2_lane_distances_are_the_portable_ones_bit_for_bit() {
         if !crate::util::has_avx2() {
