@@ -42,7 +42,7 @@ use crate::eval::protocol::demo_stroke;
 use crate::field::cache::OCCUPIED_FLOOR;
 use crate::field::{Aabb, Bitmap, Field};
 use crate::render::{render, Probe, RenderOptions, Scene};
-use crate::segment::{region_from_stroke, MaskBuilder, Polarity, SegmentParams};
+use crate::segment::{object_from_stroke, region_from_stroke, MaskBuilder, Polarity, SegmentParams};
 use crate::train::{default_cache_dir, default_teacher, preset, FeatureMaps, Session, TrainConfig};
 use crate::train::{DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS};
 use glam::Vec3;
@@ -955,7 +955,7 @@ pub fn score_scene(
         let o = &scene.objects[label as usize - 1];
         let stroke = demo_stroke(scene, &o.name).expect("filtered on strokes");
         let t0 = Instant::now();
-        let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, &params)?;
+        let (region, _) = object_from_stroke(&render_scene, &cache, &stroke, &params)?;
         let seconds = t0.elapsed().as_secs_f64();
         let (iou3d, _, selected) = resampled.iou(&region, label)?;
         let iou3d_all = all.iou(&region, label)?.0;

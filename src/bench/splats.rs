@@ -20,7 +20,7 @@ use crate::field::Field;
 use crate::lift::{lift, lift_maps, orbit_cameras, orbit_views};
 use crate::render::Scene;
 use crate::render::{render, RenderOptions};
-use crate::segment::{region_from_stroke, SegmentParams};
+use crate::segment::{object_from_stroke, SegmentParams};
 use crate::splat::import::{import_file, import_read, inside, ImportOptions, ImportReport};
 use crate::splat::ply::{standard_bytes, SplatFile};
 use crate::splat::synth::{from_demo, SynthScene};
@@ -208,7 +208,7 @@ fn score_objects(
         };
         let truth: Vec<bool> = synth.labels.iter().map(|&l| l == o.label).collect();
         let select = |p: &SegmentParams| -> Result<Vec<bool>> {
-            let (region, _) = region_from_stroke(&render_scene, &cache, &stroke, p)?;
+            let (region, _) = object_from_stroke(&render_scene, &cache, &stroke, p)?;
             Ok(inside(&file, &field.geom(), &region))
         };
         let stage = |name: String, picked: &[bool]| SplatStage {

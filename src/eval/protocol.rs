@@ -16,7 +16,7 @@ use crate::demo::{DemoScene, STROKE_RADIUS};
 use crate::error::{Error, Result};
 use crate::field::{Bitmap, FeatureCache, Field};
 use crate::render::{render, Probe, RenderOptions, Scene};
-use crate::segment::{region_from_stroke, scribble_stroke, MaskBuilder, Polarity, SegmentParams, Stroke, Timings};
+use crate::segment::{object_from_stroke, scribble_stroke, MaskBuilder, Polarity, SegmentParams, Stroke, Timings};
 use glam::Vec2;
 use serde::Serialize;
 use std::path::Path;
@@ -138,7 +138,7 @@ pub fn evaluate_demo(scene: &DemoScene, params: &SegmentParams, downscale: u32) 
         let Some(stroke) = demo_stroke(scene, &o.name) else {
             continue;
         };
-        let (region, timings) = region_from_stroke(&render_scene, &cache, &stroke, params)?;
+        let (region, timings) = object_from_stroke(&render_scene, &cache, &stroke, params)?;
         let gt = true_bitmap(scene, &cache, o.label)?;
         let score = ObjectScore {
             name: o.name.clone(),

@@ -1239,6 +1239,21 @@ pub fn region_from_stroke(
     segment_stroke(cache, cache, &look, &Negatives::default(), p).map(|(s, t)| (s.region, t))
 }
 
+/// What one positive stroke selects as a user's stroke does (the editor,
+/// scripts, `isrf segment`): through a fresh object's [`MaskBuilder`],
+/// which sends a large object to the field's coarse copy. The benchmarks
+/// score this; [`region_from_stroke`] always stays on the field's grid.
+pub fn object_from_stroke(
+    scene: &Scene,
+    cache: &FeatureCache,
+    stroke: &Stroke,
+    p: &SegmentParams,
+) -> Result<(Bitmap, Timings)> {
+    let mut builder = MaskBuilder::new(Bitmap::new(cache.geom.res));
+    let t = builder.stroke(scene, cache, stroke, Polarity::Positive, p)?;
+    Ok((builder.mask, t))
+}
+
 /// What one stroke selected.
 struct StrokeRegion {
     region: Bitmap,
