@@ -293,7 +293,7 @@ impl PointLanes {
 /// [`GROUP`] groups of points side by side (one group's sum is a chain of
 /// dependent adds).
 fn nearer_of(points: &PointLanes, c: &[f32], d2: &mut [f32]) {
-    const _: () = assert!(MIN_TASK % (LANES * GROUP) == 0);
+    const _: () = assert!(MIN_TASK.is_multiple_of(LANES * GROUP));
     d2.par_chunks_mut(MIN_TASK).enumerate().for_each(|(t, d)| {
         let first = t * MIN_TASK / LANES;
         for (q, out) in d.chunks_mut(LANES * GROUP).enumerate() {
