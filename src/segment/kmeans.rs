@@ -39,6 +39,20 @@ pub fn dist2(a: &[f32], b: &[f32]) -> f32 {
 /// bit-identical to it, while the compiler vectorises across the lanes.
 pub(crate) const LANES: usize = 8;
 
+/// `rows` (`dim` wide) transposed into blocks of [`LANES`] rows,
+/// channel-major within a block, the last block padded with zeros.
+fn transposed(rows: &[f32], dim: usize) -> Vec<f32> {
+    let n = rows.len() / dim.max(1);
+    let mut data = vec![0.0; n.div_ceil(LANES) * dim * LANES];
+    for (i, row) in rows.chunks_exact(dim.max(1)).enumerate() {
+        let (b, lane) = (i / LANES, i % LANES);
+        for (j, &v) in row.iter().enumerate() {
+            data[(b * dim + j) * LANES + lane] = v;
+        }
+    }
+    data
+}
+
 /// The centres transposed into blocks of [`LANES`] (channel-major within a
 /// block, the last block padded), so that one point's distances to a
 /// block's centres are computed lane by lane: each lane still sums its
@@ -55,16 +69,11 @@ pub(crate) struct CentreBlocks {
 
 impl CentreBlocks {
     pub(crate) fn new(centres: &[f32], dim: usize) -> Self {
-        let k = centres.len() / dim.max(1);
-        let blocks = k.div_ceil(LANES);
-        let mut data = vec![0.0; blocks * dim * LANES];
-        for (c, row) in centres.chunks_exact(dim.max(1)).enumerate() {
-            let (b, lane) = (c / LANES, c % LANES);
-            for (j, &v) in row.iter().enumerate() {
-                data[(b * dim + j) * LANES + lane] = v;
-            }
+        CentreBlocks {
+            k: centres.len() / dim.max(1),
+            dim,
+            data: transposed(centres, dim),
         }
-        CentreBlocks { k, dim, data }
     }
 
     /// The nearest centre to `p` and its squared distance (the first one
@@ -91,32 +100,23 @@ impl CentreBlocks {
 
     /// Calls `f(k, |p − c_k|²)` for every centre in order (each summed
     /// over the channels in order, as [`dist2`]), up to [`GROUP`] blocks of
-    /// centres at a time ([`lane_distances`]).
+    /// centres at a time ([`with_lane_distances`]).
     #[inline(always)]
     fn each_distance(&self, p: &[f32], mut f: impl FnMut(usize, f32)) {
         let stride = self.dim * LANES;
         let blocks = self.data.len() / stride.max(1);
         let mut b = 0;
         while b < blocks {
-            let data = &self.data[b * stride..];
-            let (dim, first) = (self.dim, b * LANES);
-            b += match blocks - b {
-                1 => self.emit(first, lane_distances::<1>(data, dim, p), &mut f),
-                2 => self.emit(first, lane_distances::<2>(data, dim, p), &mut f),
-                3 => self.emit(first, lane_distances::<3>(data, dim, p), &mut f),
-                _ => self.emit(first, lane_distances::<GROUP>(data, dim, p), &mut f),
-            };
+            let count = (blocks - b).min(GROUP);
+            let first = b * LANES;
+            with_lane_distances(&self.data[b * stride..], self.dim, p, count, |d| {
+                // The padding lanes of the last block left out.
+                for (i, &d) in d.iter().flatten().enumerate().take(self.k - first) {
+                    f(first + i, d);
+                }
+            });
+            b += count;
         }
-    }
-
-    /// Hands the distances of `G` blocks from centre `first` to `f` (the
-    /// padding lanes of the last block left out); returns `G`.
-    #[inline(always)]
-    fn emit<const G: usize>(&self, first: usize, d: [[f32; LANES]; G], f: &mut impl FnMut(usize, f32)) -> usize {
-        for (i, &d) in d.iter().flatten().enumerate().take(self.k.saturating_sub(first)) {
-            f(first + i, d);
-        }
-        G
     }
 
     /// Calls `f(k, p·c_k)` for every centre in order, each dot product
@@ -155,6 +155,18 @@ fn lane_distances<const G: usize>(blocks: &[f32], dim: usize, x: &[f32]) -> [[f3
         return unsafe { avx2::lane_distances::<G>(blocks, dim, x) };
     }
     portable_lane_distances(blocks, dim, x)
+}
+
+/// Hands `f` the [`lane_distances`] of the first `count` (1 to [`GROUP`])
+/// blocks of `blocks`.
+#[inline(always)]
+fn with_lane_distances(blocks: &[f32], dim: usize, x: &[f32], count: usize, f: impl FnOnce(&[[f32; LANES]])) {
+    match count {
+        1 => f(&lane_distances::<1>(blocks, dim, x)),
+        2 => f(&lane_distances::<2>(blocks, dim, x)),
+        3 => f(&lane_distances::<3>(blocks, dim, x)),
+        _ => f(&lane_distances::<GROUP>(blocks, dim, x)),
+    }
 }
 
 /// [`lane_distances`] on any CPU, one block at a time.
@@ -276,15 +288,10 @@ struct PointLanes {
 
 impl PointLanes {
     fn new(points: &[f32], dim: usize) -> Self {
-        let n = points.len() / dim.max(1);
-        let mut data = vec![0.0; n.div_ceil(LANES) * dim * LANES];
-        for (i, row) in points.chunks_exact(dim.max(1)).enumerate() {
-            let (g, lane) = (i / LANES, i % LANES);
-            for (j, &v) in row.iter().enumerate() {
-                data[(g * dim + j) * LANES + lane] = v;
-            }
+        PointLanes {
+            dim,
+            data: transposed(points, dim),
         }
-        PointLanes { dim, data }
     }
 }
 
@@ -297,25 +304,15 @@ fn nearer_of(points: &PointLanes, c: &[f32], d2: &mut [f32]) {
     d2.par_chunks_mut(MIN_TASK).enumerate().for_each(|(t, d)| {
         let first = t * MIN_TASK / LANES;
         for (q, out) in d.chunks_mut(LANES * GROUP).enumerate() {
-            let at = first + q * GROUP;
-            match out.len().div_ceil(LANES) {
-                1 => nearer_group::<1>(points, at, c, out),
-                2 => nearer_group::<2>(points, at, c, out),
-                3 => nearer_group::<3>(points, at, c, out),
-                _ => nearer_group::<GROUP>(points, at, c, out),
-            }
+            let groups = &points.data[(first + q * GROUP) * points.dim * LANES..];
+            with_lane_distances(groups, points.dim, c, out.len().div_ceil(LANES), |d| {
+                // The last group perhaps in part.
+                for (o, a) in out.iter_mut().zip(d.iter().flatten()) {
+                    *o = o.min(*a);
+                }
+            });
         }
     });
-}
-
-/// [`nearer_of`] over the `G` groups of points from group `first`, whose
-/// distances `out` holds (the last one perhaps in part).
-#[inline(always)]
-fn nearer_group<const G: usize>(points: &PointLanes, first: usize, c: &[f32], out: &mut [f32]) {
-    let d = lane_distances::<G>(&points.data[first * points.dim * LANES..], points.dim, c);
-    for (o, a) in out.iter_mut().zip(d.iter().flatten()) {
-        *o = o.min(*a);
-    }
 }
 
 /// Lloyd iterations over `points` started from `start` (the centres of a

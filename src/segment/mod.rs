@@ -1050,12 +1050,11 @@ impl MaskBuilder {
         }
         let mut reach = self.mask.clone();
         reach.union_with(&s.region)?;
-        let domain: Vec<u32> = reach
+        // The reached voxels with features, and their cache rows.
+        let (domain, rows): (Vec<u32>, Vec<usize>) = reach
             .ones()
-            .filter(|&v| cache.index.slot(v).is_some())
-            .map(|v| v as u32)
-            .collect();
-        let rows = cut::rows_of(cache, &domain);
+            .filter_map(|v| Some((v as u32, cache.index.slot(v)?)))
+            .unzip();
         let colours = voxel_colours(field, cache, &rows);
         let mut hard = anchor::near_anchors(&self.mask, &self.positive_anchors, anchor::radius(cache));
         if field.is_some() {
