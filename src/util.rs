@@ -141,6 +141,19 @@ pub mod rows {
     }
 }
 
+/// Asks the caches for the line holding `p` (a hint: it reads nothing,
+/// cannot fault, and does nothing off x86-64).
+#[inline(always)]
+pub fn prefetch<T>(p: *const T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch is a hint; any address is allowed.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p as *const i8)
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
+
 /// Whether this CPU runs AVX2 (checked once).
 pub fn has_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]

@@ -237,18 +237,12 @@ impl RankIndex {
         })
     }
     /// Asks the caches for the words [`Self::slot`] reads for voxel `i`
-    /// (a hint: nothing happens off x86-64 or for `i` off the grid).
+    /// (a hint; nothing for `i` off the grid).
     #[inline(always)]
     pub fn prefetch(&self, i: usize) {
-        #[cfg(target_arch = "x86_64")]
         if let (Some(w), Some(p)) = (self.bits.words.get(i >> 6), self.prefix.get(i >> 6)) {
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-            // SAFETY: prefetching reads nothing and cannot fault; both
-            // pointers are to live elements.
-            unsafe {
-                _mm_prefetch::<_MM_HINT_T0>(w as *const u64 as *const i8);
-                _mm_prefetch::<_MM_HINT_T0>(p as *const u32 as *const i8);
-            }
+            crate::util::prefetch(w);
+            crate::util::prefetch(p);
         }
     }
     /// Slot of voxel `i`, or `None` when it is not set.

@@ -261,31 +261,25 @@ fn sh_color<const K: usize>(model: &Model, base: usize, off: &[usize; 8], w8: &[
 /// march waited on them.
 #[inline(always)]
 fn prefetch_ahead<const K: usize>(model: &Model, lat: &Lattice, ray: &Ray, t: f32, dt: f32) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let hint = |p: *const f32| {
-            // SAFETY: prefetching reads nothing and cannot fault.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(p as *const i8) }
-        };
-        if let Some((base, _)) = lat.cell(lat.grid(ray.at(t + 2.0 * dt))) {
-            hint(model.cells.as_ptr().wrapping_add(base) as *const f32);
-            for k in [0, 2, 4, 6] {
-                hint(model.density.as_ptr().wrapping_add(base + lat.off[k]));
-                model.slots.index.prefetch(base + lat.off[k]);
-            }
+    use crate::util::prefetch;
+    if let Some((base, _)) = lat.cell(lat.grid(ray.at(t + 2.0 * dt))) {
+        prefetch(model.cells.as_ptr().wrapping_add(base));
+        for k in [0, 2, 4, 6] {
+            prefetch(model.density.as_ptr().wrapping_add(base + lat.off[k]));
+            model.slots.index.prefetch(base + lat.off[k]);
         }
-        if model.vm.is_some() {
-            return;
-        }
-        if let Some((base, _)) = lat.cell(lat.grid(ray.at(t + dt))) {
-            let stride = 3 * K;
-            for k in 0..8 {
-                if let Some(v) = model.slots.slot(base + lat.off[k]) {
-                    let row = model.sh.as_ptr().wrapping_add(v * stride);
-                    for line in (0..stride).step_by(16) {
-                        hint(row.wrapping_add(line));
-                    }
+    }
+    if model.vm.is_some() {
+        return;
+    }
+    if let Some((base, _)) = lat.cell(lat.grid(ray.at(t + dt))) {
+        let stride = 3 * K;
+        for k in 0..8 {
+            if let Some(v) = model.slots.slot(base + lat.off[k]) {
+                let row = model.sh.as_ptr().wrapping_add(v * stride);
+                // A row (27 values for degree 2) spans up to three lines.
+                for line in (0..stride).step_by(16).chain([stride - 1]) {
+                    prefetch(row.wrapping_add(line));
                 }
             }
         }

@@ -150,7 +150,7 @@ fn adam_step_with(
             };
             #[cfg(target_arch = "x86_64")]
             if avx2 {
-                // SAFETY: the CPU has AVX2 (checked above).
+                // SAFETY: the caller found AVX2 on this CPU.
                 unsafe { avx2_update_chunk(&chunk, words, p, m, v, &mut gs, k) };
                 return;
             }
