@@ -103,25 +103,10 @@ pub fn adam_step(
     hp: AdamParams,
     clamp: (f32, f32),
 ) {
-    let k = StepConsts::new(hp, lr_t, clamp);
-    adam_step_with(params, mom, grads, stride, touched, slots, k, crate::util::has_avx2());
-}
-
-/// [`adam_step`], on AVX2 where `avx2` says so (the tests run both).
-#[allow(clippy::too_many_arguments)]
-fn adam_step_with(
-    params: &mut [f32],
-    mom: &mut Moments,
-    grads: &mut [&mut Vec<f32>],
-    stride: usize,
-    touched: &[u64],
-    slots: Option<&Slots>,
-    k: StepConsts,
-    avx2: bool,
-) {
     if mom.m.is_empty() {
         return;
     }
+    let (k, avx2) = (StepConsts::new(hp, lr_t, clamp), crate::util::has_avx2());
     let span = CHUNK * stride;
     let pieces = param_pieces(params, slots, stride);
     let nchunks = mom.m.len().div_ceil(span);
@@ -150,7 +135,7 @@ fn adam_step_with(
             };
             #[cfg(target_arch = "x86_64")]
             if avx2 {
-                // SAFETY: the caller found AVX2 on this CPU.
+                // SAFETY: `has_avx2` found AVX2 on this CPU.
                 unsafe { avx2_update_chunk(&chunk, words, p, m, v, &mut gs, k) };
                 return;
             }
@@ -499,8 +484,9 @@ mod tests {
             .collect();
         let slots = Slots::new([points, 1, 1], &active);
         let cases = [(1, true), (27, false), (3, true)];
-        let paths = [false, crate::util::has_avx2()];
-        for ((stride, with_slots), avx2) in cases.into_iter().flat_map(|c| paths.map(|a| (c, a))) {
+        // `adam_step` (chunked, in parallel, on AVX2 where the CPU has it)
+        // and the portable kernel over the whole array as one chunk.
+        for ((stride, with_slots), portable) in cases.into_iter().flat_map(|c| [false, true].map(|a| (c, a))) {
             let n = if with_slots { slots.len() } else { points };
             let len_p = if with_slots { points * stride } else { n * stride };
             let mut p: Vec<f32> = (0..len_p).map(|_| unit() - 0.5).collect();
@@ -526,9 +512,28 @@ mod tests {
             let hp = AdamParams::default();
             let (lr, clamp) = (0.05, (-0.4, 0.45));
             let map = with_slots.then_some(&slots);
-            let k = StepConsts::new(hp, lr, clamp);
-            let grads = &mut [&mut g0, &mut g1];
-            adam_step_with(&mut p, &mut mom, grads, stride, &touched, map, k, avx2);
+            if portable {
+                let chunk = Chunk {
+                    first_slot: 0,
+                    offset: 0,
+                    stride,
+                    slots: map,
+                };
+                let (m, v, k) = (&mut mom.m, &mut mom.v, StepConsts::new(hp, lr, clamp));
+                update_chunk(&chunk, &touched, &mut p, m, v, &mut [&mut g0, &mut g1], k);
+            } else {
+                adam_step(
+                    &mut p,
+                    &mut mom,
+                    &mut [&mut g0, &mut g1],
+                    stride,
+                    &touched,
+                    map,
+                    lr,
+                    hp,
+                    clamp,
+                );
+            }
             for s in 0..n {
                 let point = map.map_or(s, |sl| sl.voxels[s] as usize);
                 for j in 0..stride {
@@ -546,7 +551,7 @@ mod tests {
                     assert_eq!(
                         p[q].to_bits(),
                         want.to_bits(),
-                        "stride {stride}, AVX2 {avx2}, slot {s}, value {j}"
+                        "stride {stride}, portable {portable}, slot {s}, value {j}"
                     );
                     assert_eq!((mom.m[i], mom.v[i]), (narrow(mf), narrow(vf)));
                     assert_eq!((g0[i], g1[i]), (0.0, 0.0));
