@@ -31,14 +31,14 @@ use crate::field::{Bitmap, GridGeom};
 use glam::Vec3;
 
 /// A level whose annulus is at least this share solid is the ground's.
-const GROUND: f32 = 0.8;
+pub(super) const GROUND: f32 = 0.8;
 /// The most levels of ground a region can have taken: the blur of a
 /// trained surface is a voxel or two.
 const MAX_LEVELS: usize = 3;
 /// The annulus: cells more than `INNER` and at most `OUTER` cells (along
 /// either in-plane axis) from the region's outline.
 const INNER: usize = 1;
-const OUTER: usize = 4;
+pub(super) const OUTER: usize = 4;
 
 /// `region` without the levels of ground it took (module docs); `solid`
 /// marks the voxels that can be ground, `up` is the scene's up direction
@@ -74,7 +74,7 @@ pub fn off_the_ground(geom: &GridGeom, solid: &Bitmap, region: Bitmap, up: Vec3,
 
 /// The grid seen along the axis nearest `up`: a voxel's height (levels
 /// counted upwards) and its cell in the plane across it.
-struct Frame<'a> {
+pub(super) struct Frame<'a> {
     geom: &'a GridGeom,
     axis: usize,
     /// The two other axes.
@@ -83,7 +83,7 @@ struct Frame<'a> {
 }
 
 impl<'a> Frame<'a> {
-    fn new(geom: &'a GridGeom, up: Vec3) -> Self {
+    pub(super) fn new(geom: &'a GridGeom, up: Vec3) -> Self {
         let axis = up.abs().max_position();
         Frame {
             geom,
@@ -92,7 +92,7 @@ impl<'a> Frame<'a> {
             rising: up[axis] >= 0.0,
         }
     }
-    fn height(&self, v: usize) -> usize {
+    pub(super) fn height(&self, v: usize) -> usize {
         self.flip(self.geom.coords(v)[self.axis])
     }
     /// A grid coordinate along the up axis as a height, and back.
@@ -103,7 +103,7 @@ impl<'a> Frame<'a> {
             self.geom.res[self.axis] - 1 - c
         }
     }
-    fn cell(&self, v: usize) -> [usize; 2] {
+    pub(super) fn cell(&self, v: usize) -> [usize; 2] {
         let c = self.geom.coords(v);
         self.across.map(|a| c[a])
     }
@@ -117,35 +117,72 @@ impl<'a> Frame<'a> {
     }
 }
 
-/// The cells around an outline (module docs), in the grid.
-struct Annulus(Vec<[usize; 2]>);
+/// The cells some voxels cover, seen along up, on a raster over their box
+/// widened by [`OUTER`]: those cells widened by [`INNER`] (`near`) and by
+/// [`OUTER`] (`far`).
+pub(super) struct Outline {
+    lo: [usize; 2],
+    size: [usize; 2],
+    near: Vec<bool>,
+    far: Vec<bool>,
+}
 
-impl Annulus {
-    /// Around the cells of `voxels`: a raster over their box widened by
-    /// [`OUTER`], dilated twice (square windows, one pass per axis).
-    fn around(frame: &Frame, voxels: &[u32]) -> Self {
-        let cells: Vec<[usize; 2]> = voxels.iter().map(|&v| frame.cell(v as usize)).collect();
+impl Outline {
+    /// The outline of `voxels` (dilated twice: square windows, one pass
+    /// per axis).
+    pub(super) fn of(frame: &Frame, voxels: impl Iterator<Item = usize>) -> Self {
+        let cells: Vec<[usize; 2]> = voxels.map(|v| frame.cell(v)).collect();
         let lo = [0, 1].map(|k| cells.iter().map(|c| c[k]).min().unwrap_or(0).saturating_sub(OUTER));
         let hi = [0, 1].map(|k| {
             let top = frame.geom.res[frame.across[k]] - 1;
             (cells.iter().map(|c| c[k]).max().unwrap_or(0) + OUTER).min(top)
         });
         let size = [hi[0] - lo[0] + 1, hi[1] - lo[1] + 1];
-        let mut outline = vec![false; size[0] * size[1]];
+        let mut covered = vec![false; size[0] * size[1]];
         for c in &cells {
-            outline[(c[1] - lo[1]) * size[0] + c[0] - lo[0]] = true;
+            covered[(c[1] - lo[1]) * size[0] + c[0] - lo[0]] = true;
         }
-        let near = dilate(&outline, size, INNER);
-        let far = dilate(&outline, size, OUTER);
-        let ring = (0..outline.len())
-            .filter(|&i| far[i] && !near[i])
-            .map(|i| [lo[0] + i % size[0], lo[1] + i / size[0]])
+        Outline {
+            lo,
+            size,
+            near: dilate(&covered, size, INNER),
+            far: dilate(&covered, size, OUTER),
+        }
+    }
+
+    fn index(&self, [x, y]: [usize; 2]) -> Option<usize> {
+        let inside = (self.lo[0]..self.lo[0] + self.size[0]).contains(&x)
+            && (self.lo[1]..self.lo[1] + self.size[1]).contains(&y);
+        inside.then(|| (y - self.lo[1]) * self.size[0] + x - self.lo[0])
+    }
+
+    /// Whether `cell` is within [`INNER`] cells of the outline.
+    pub(super) fn near(&self, cell: [usize; 2]) -> bool {
+        self.index(cell).is_some_and(|i| self.near[i])
+    }
+
+    /// The annulus: cells more than [`INNER`] and at most [`OUTER`] cells
+    /// from the outline.
+    pub(super) fn ring(&self) -> Annulus {
+        let ring = (0..self.near.len())
+            .filter(|&i| self.far[i] && !self.near[i])
+            .map(|i| [self.lo[0] + i % self.size[0], self.lo[1] + i / self.size[0]])
             .collect();
         Annulus(ring)
     }
+}
+
+/// The cells around an outline (module docs), in the grid.
+pub(super) struct Annulus(Vec<[usize; 2]>);
+
+impl Annulus {
+    /// Around the cells of `voxels`.
+    fn around(frame: &Frame, voxels: &[u32]) -> Self {
+        Outline::of(frame, voxels.iter().map(|&v| v as usize)).ring()
+    }
 
     /// The share of the annulus's cells at `height` whose voxel `full` accepts.
-    fn solid_share(&self, frame: &Frame, height: usize, full: impl Fn(usize) -> bool) -> f32 {
+    pub(super) fn solid_share(&self, frame: &Frame, height: usize, full: impl Fn(usize) -> bool) -> f32 {
         let n = self.0.iter().filter(|&&c| full(frame.voxel(c, height))).count();
         n as f32 / self.0.len().max(1) as f32
     }

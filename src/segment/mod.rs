@@ -22,6 +22,7 @@ pub mod plane;
 pub mod stable;
 pub mod stroke;
 pub mod supports;
+mod under;
 
 pub use grow::{grow_step_dense, Bound, GrowParams, Grower, GrowthRule};
 pub use kmeans::{kmeans, Centroids};
@@ -738,8 +739,13 @@ fn by_structure(cache: &FeatureCache, floor: f32, region: Bitmap, anchors: &[u32
     match plane::flat_slab(&cache.geom, &voxels) {
         Some(slab) => supports::with_supports(&cache.geom, &solid(), region, &slab),
         None if !anchors.is_empty() => {
+            let region = match cache.up {
+                Some(up) => under::with_undercarriage(&cache.geom, &solid(), region, up, anchors),
+                None => region,
+            };
             let stroked = anchor::near_anchors(&region, anchors, anchor::radius(cache));
-            let region = beside::without_neighbours(&cache.geom, &solid(), region, &stroked);
+            let colour = |v: usize| cache.index.slot(v).and_then(|r| cache.colours.get(r).copied());
+            let region = beside::without_neighbours(&cache.geom, &solid(), region, &stroked, colour);
             match cache.up {
                 Some(up) => footing::off_the_ground(&cache.geom, &solid(), region, up, anchors),
                 None => region,

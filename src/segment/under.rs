@@ -1,0 +1,217 @@
+//! What holds a standing object up: an excavator's tracks under its body.
+//!
+//! A stroke along a toy excavator's yellow body and arm selects them, but
+//! its black tracks look like something else to the teacher (on the splat
+//! benchmark the ViT's region took 83 of the tracks' 334 Gaussians), and
+//! nothing in the features joins them. Their place does: they stand on the
+//! ground under the body, inside its outline and under the stroke, and
+//! hold it up. A table's legs are the same thing under a flat region
+//! ([`super::supports`]); this is the rule for any other shape, and it
+//! needs to know which way is up ([`crate::field::Field::up`]).
+//!
+//! The ground is the highest level, at most [`ABOVE_LOWEST`] above the
+//! region's lowest voxel, whose annulus around the region's outline is
+//! solid outside the region for [`GROUND`] of its cells (as in
+//! [`super::footing`]). Above it, the solid voxels outside the region
+//! within [`OUTER`] cells of its outline, below the region's top, are
+//! grouped (26-neighbours); a group touching the region joins it when it
+//! holds it up:
+//! - it stands on the ground (its lowest voxel within [`ON_GROUND`] levels
+//!   of it) and rises at least [`MIN_SPAN`] levels (a blurred ground's
+//!   upper levels around the region's foot are flat);
+//! - at least [`UNDER_SHARE`] of it lies within one cell of the region's
+//!   outline (a neighbour standing beside the region, a box a mug leans
+//!   on, lies mostly outside it);
+//! - it lies lower than the region (its mean height below the region's);
+//! - it is under the stroke (within one cell of a voxel under it): where
+//!   the region already took a neighbour's top by mistake, that
+//!   neighbour's sides are not added to the mistake.
+//!
+//! Something the region stands on that is not part of the object (a
+//! plinth no wider than the statue on it) would join it too; a negative
+//! stroke takes it off.
+
+use super::footing::{Frame, Outline, GROUND};
+use crate::field::{Bitmap, GridGeom};
+use glam::Vec3;
+
+/// The ground may lie this many levels above the region's lowest voxel (a
+/// region that took a voxel or two of the ground's blur).
+const ABOVE_LOWEST: usize = 2;
+/// A group stands on the ground when its lowest voxel is at most this many
+/// levels above it.
+const ON_GROUND: usize = 2;
+/// Levels a group must span to hold anything up.
+const MIN_SPAN: usize = 3;
+/// Share of a group that must lie within one cell of the region's outline.
+const UNDER_SHARE: f32 = 0.5;
+/// A group larger than this many times the region is the rest of the
+/// scene, not its undercarriage: its search stops there.
+const MOST: usize = 2;
+
+/// `region` with what holds it up (module docs); `solid` marks the voxels
+/// that can hold it, `up` is the scene's up direction, `anchors` the voxels
+/// under the stroke.
+pub fn with_undercarriage(geom: &GridGeom, solid: &Bitmap, region: Bitmap, up: Vec3, anchors: &[u32]) -> Bitmap {
+    let frame = Frame::new(geom, up);
+    let voxels: Vec<usize> = region.ones().collect();
+    let (Some(lowest), Some(top)) = (
+        voxels.iter().map(|&v| frame.height(v)).min(),
+        voxels.iter().map(|&v| frame.height(v)).max(),
+    ) else {
+        return region;
+    };
+    if anchors.is_empty() {
+        return region;
+    }
+    let outline = Outline::of(&frame, voxels.iter().copied());
+    let annulus = outline.ring();
+    let outside = |v: usize| solid.get(v) && !region.get(v);
+    let Some(ground) = (0..=(lowest + ABOVE_LOWEST).min(top))
+        .rev()
+        .find(|&h| annulus.solid_share(&frame, h, outside) >= GROUND)
+    else {
+        return region;
+    };
+    let stroke = Outline::of(&frame, anchors.iter().map(|&v| v as usize));
+    let mean = voxels.iter().map(|&v| frame.height(v) as f64).sum::<f64>() / voxels.len() as f64;
+    let candidate = |v: usize| {
+        let h = frame.height(v);
+        outside(v) && h > ground && h < top
+    };
+    let group_of = Groups {
+        geom,
+        candidate: &candidate,
+        most: MOST * voxels.len(),
+    };
+    let mut seen = Bitmap::new(geom.res);
+    let mut out = region.clone();
+    for &v in &voxels {
+        geom.neighbours26(v, |n| {
+            if seen.get(n) || !candidate(n) {
+                return;
+            }
+            let Some(group) = group_of.collect(n, &mut seen) else {
+                return;
+            };
+            let heights = || group.iter().map(|&g| frame.height(g as usize));
+            let (low, high) = (heights().min().unwrap_or(0), heights().max().unwrap_or(0));
+            let span = high + 1 - low;
+            let under = group.iter().filter(|&&g| outline.near(frame.cell(g as usize))).count();
+            let group_mean = heights().map(|h| h as f64).sum::<f64>() / group.len() as f64;
+            let holds = low <= ground + ON_GROUND
+                && span >= MIN_SPAN
+                && under as f32 >= UNDER_SHARE * group.len() as f32
+                && group_mean < mean
+                && group.iter().any(|&g| stroke.near(frame.cell(g as usize)));
+            if holds {
+                for &g in &group {
+                    out.set(g as usize, true);
+                }
+            }
+        });
+    }
+    out
+}
+
+/// The flood that groups candidate voxels (26-neighbours).
+struct Groups<'a> {
+    geom: &'a GridGeom,
+    candidate: &'a dyn Fn(usize) -> bool,
+    /// A group past this size is given up (`None`).
+    most: usize,
+}
+
+impl Groups<'_> {
+    /// The group of candidate `start`, marking what it floods in `seen`;
+    /// `None` past [`Groups::most`] voxels (the rest of that group is
+    /// marked too, so no later start floods it again).
+    fn collect(&self, start: usize, seen: &mut Bitmap) -> Option<Vec<u32>> {
+        let mut group = vec![start as u32];
+        seen.set(start, true);
+        let mut next = 0;
+        while next < group.len() {
+            let v = group[next] as usize;
+            next += 1;
+            self.geom.neighbours26(v, |n| {
+                if !seen.get(n) && (self.candidate)(n) {
+                    seen.set(n, true);
+                    group.push(n as u32);
+                }
+            });
+        }
+        (group.len() <= self.most).then_some(group)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::Aabb;
+
+    /// A board (y < 8) carrying a toy: a body (y 16–23) on two tracks
+    /// (y 8–15, a little longer than the body) and, beside it, a box
+    /// (y 8–19) it does not stand on. The region is the body, the stroke
+    /// across its top.
+    #[test]
+    fn the_tracks_under_the_stroke_join_the_box_beside_does_not() {
+        let n = 64;
+        let geom = GridGeom::new(Aabb::new(Vec3::ZERO, Vec3::splat((n - 1) as f32)), [n; 3]);
+        let at = |v: usize| geom.coords(v).map(|c| c as i32);
+        let board = Bitmap::from_fn(geom.res, |v| at(v)[1] < 8);
+        let body = Bitmap::from_fn(geom.res, |v| {
+            let [x, y, z] = at(v);
+            (16..24).contains(&y) && (12..38).contains(&x) && (20..44).contains(&z)
+        });
+        let tracks = Bitmap::from_fn(geom.res, |v| {
+            let [x, y, z] = at(v);
+            (8..16).contains(&y) && (10..40).contains(&x) && ((20..27).contains(&z) || (37..44).contains(&z))
+        });
+        let side_box = Bitmap::from_fn(geom.res, |v| {
+            let [x, y, z] = at(v);
+            (8..20).contains(&y) && (38..48).contains(&x) && (28..36).contains(&z)
+        });
+        let solid = Bitmap::from_fn(geom.res, |v| {
+            board.get(v) || body.get(v) || tracks.get(v) || side_box.get(v)
+        });
+        let anchors: Vec<u32> = body
+            .ones()
+            .filter(|&v| {
+                let [x, y, z] = at(v);
+                y == 23 && (14..36).contains(&x) && z == 22 + (x - 14) * 19 / 22
+            })
+            .map(|v| v as u32)
+            .collect();
+        let got = with_undercarriage(&geom, &solid, body.clone(), Vec3::Y, &anchors);
+        let kept = |b: &Bitmap| b.ones().filter(|&v| got.get(v)).count();
+        assert_eq!(kept(&tracks), tracks.count(), "the tracks join");
+        assert_eq!(kept(&side_box), 0, "the box beside stays out");
+        assert_eq!(kept(&board), 0, "the ground stays out");
+        assert_eq!(got.count(), body.count() + tracks.count());
+        // Upside down (up = −y), the body has nothing under it.
+        let flipped = with_undercarriage(&geom, &solid, body.clone(), Vec3::NEG_Y, &anchors);
+        assert!(flipped == body);
+        // A stroke on one end of the body, over neither track's middle but
+        // over one track's end: that track joins, the other does not.
+        let end: Vec<u32> = body
+            .ones()
+            .filter(|&v| {
+                let [x, y, z] = at(v);
+                y == 23 && x == 14 && (21..26).contains(&z)
+            })
+            .map(|v| v as u32)
+            .collect();
+        let one = with_undercarriage(&geom, &solid, body.clone(), Vec3::Y, &end);
+        let near_track = |v: usize| (20..27).contains(&at(v)[2]);
+        assert!(tracks.ones().filter(|&v| near_track(v)).all(|v| one.get(v)));
+        assert!(tracks.ones().filter(|&v| !near_track(v)).all(|v| !one.get(v)));
+        // A body resting on the board itself: nothing under it to add.
+        let low_body = Bitmap::from_fn(geom.res, |v| {
+            let [x, y, z] = at(v);
+            (8..16).contains(&y) && (12..38).contains(&x) && (20..44).contains(&z)
+        });
+        let solid2 = Bitmap::from_fn(geom.res, |v| board.get(v) || low_body.get(v));
+        let low_anchors: Vec<u32> = low_body.ones().filter(|&v| at(v)[1] == 15).map(|v| v as u32).collect();
+        assert!(with_undercarriage(&geom, &solid2, low_body.clone(), Vec3::Y, &low_anchors) == low_body);
+    }
+}
