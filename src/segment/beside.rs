@@ -351,55 +351,29 @@ fn faces_to_rest(geom: &GridGeom, region: &Bitmap, column: &[u32]) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::Aabb;
+    use crate::segment::toy::{union, Toy};
 
-    /// A board (y < 8) carrying a toy: a body (y 16–23) on two tracks
-    /// (y 8–15) and a jar (an 8×12×8 block) standing on the board against
-    /// the body's end. The region is all three; the stroke on the body.
+    /// The toy's jar stands on the board against the body's end; the region
+    /// is toy and jar, the stroke on the body.
     #[test]
     fn a_jar_beside_the_toy_leaves_its_tracks_stay() {
-        let n = 64;
-        let geom = GridGeom::new(Aabb::new(Vec3::ZERO, Vec3::splat((n - 1) as f32)), [n; 3]);
-        let at = |v: usize| geom.coords(v).map(|c| c as i32);
-        let board = Bitmap::from_fn(geom.res, |v| at(v)[1] < 8);
-        let body = Bitmap::from_fn(geom.res, |v| {
-            let [x, y, z] = at(v);
-            (16..24).contains(&y) && (10..40).contains(&x) && (20..44).contains(&z)
-        });
-        let tracks = Bitmap::from_fn(geom.res, |v| {
-            let [x, y, z] = at(v);
-            (8..16).contains(&y) && (8..42).contains(&x) && ((20..27).contains(&z) || (37..44).contains(&z))
-        });
-        let jar = Bitmap::from_fn(geom.res, |v| {
-            let [x, y, z] = at(v);
-            (8..20).contains(&y) && (40..48).contains(&x) && (28..36).contains(&z)
-        });
-        let toy = Bitmap::from_fn(geom.res, |v| body.get(v) || tracks.get(v));
-        let region = Bitmap::from_fn(geom.res, |v| toy.get(v) || jar.get(v));
-        let solid = Bitmap::from_fn(geom.res, |v| board.get(v) || region.get(v));
-        // The stroke: across the body's top, over both tracks.
-        let anchors: Vec<u32> = body
-            .ones()
-            .filter(|&v| {
-                let [x, y, z] = at(v);
-                y == 23 && (12..36).contains(&x) && z == 22 + (x - 12) * 19 / 24
-            })
-            .map(|v| v as u32)
-            .collect();
-        let got = without_neighbours(&geom, &solid, region.clone(), &anchors, |_| None);
+        let t = Toy::new();
+        let region = union(&[&t.body, &t.tracks, &t.jar]);
+        let solid = union(&[&t.board, &region]);
+        let got = without_neighbours(&t.geom, &solid, region.clone(), &t.anchors, |_| None);
         let kept = |b: &Bitmap| b.ones().filter(|&v| got.get(v)).count();
-        assert_eq!(kept(&jar), 0, "the jar stays");
-        assert_eq!(kept(&tracks), tracks.count(), "the tracks, under the stroke, stay");
+        assert_eq!(kept(&t.jar), 0, "the jar stays");
+        assert_eq!(kept(&t.tracks), t.tracks.count(), "the tracks, under the stroke, stay");
         // The body's end against the jar is in the jar's column (its
         // outline one voxel wider) but meets the rest of the body: it stays.
-        assert_eq!(kept(&body), body.count());
+        assert_eq!(kept(&t.body), t.body.count());
         assert!(got.ones().all(|v| region.get(v)), "nothing is added");
         // A stroke on the jar keeps it.
-        let on_jar: Vec<u32> = jar.ones().filter(|&v| at(v)[1] == 19).map(|v| v as u32).collect();
-        let with_jar = without_neighbours(&geom, &solid, region.clone(), &on_jar, |_| None);
-        assert!(jar.ones().all(|v| with_jar.get(v)));
+        let on_jar: Vec<u32> = t.jar.ones().filter(|&v| t.at(v)[1] == 19).map(|v| v as u32).collect();
+        let with_jar = without_neighbours(&t.geom, &solid, region.clone(), &on_jar, |_| None);
+        assert!(t.jar.ones().all(|v| with_jar.get(v)));
         // Nothing under the region to stand on: unchanged.
-        let floating = without_neighbours(&geom, &region, region.clone(), &anchors, |_| None);
+        let floating = without_neighbours(&t.geom, &region, region.clone(), &t.anchors, |_| None);
         assert!(floating == region, "a region on nothing is left alone");
     }
 
@@ -411,44 +385,30 @@ mod tests {
     /// alone, and both leave.
     #[test]
     fn a_footprint_keeps_one_colour() {
-        let n = 64;
-        let geom = GridGeom::new(Aabb::new(Vec3::ZERO, Vec3::splat((n - 1) as f32)), [n; 3]);
-        let at = |v: usize| geom.coords(v).map(|c| c as i32);
-        let inside = |v: usize, lo: [i32; 3], hi: [i32; 3]| (0..3).all(|k| (lo[k]..hi[k]).contains(&at(v)[k]));
-        let board = Bitmap::from_fn(geom.res, |v| at(v)[1] < 8);
-        let body = Bitmap::from_fn(geom.res, |v| inside(v, [10, 16, 20], [34, 24, 44]));
-        let tracks = Bitmap::from_fn(geom.res, |v| {
-            inside(v, [8, 8, 20], [36, 16, 27]) || inside(v, [8, 8, 37], [36, 16, 44])
-        });
-        let arm = Bitmap::from_fn(geom.res, |v| inside(v, [34, 20, 30], [40, 22, 32]));
-        let bucket = Bitmap::from_fn(geom.res, |v| inside(v, [38, 8, 28], [44, 20, 34]));
-        let jar = Bitmap::from_fn(geom.res, |v| inside(v, [44, 8, 28], [52, 20, 36]));
-        let parts = [&body, &tracks, &arm, &bucket, &jar];
-        let region = Bitmap::from_fn(geom.res, |v| parts.iter().any(|p| p.get(v)));
-        let solid = Bitmap::from_fn(geom.res, |v| board.get(v) || region.get(v));
-        let anchors: Vec<u32> = body
-            .ones()
-            .filter(|&v| at(v)[1] == 23 && (12..32).contains(&at(v)[0]) && at(v)[2] == 22 + (at(v)[0] - 12))
-            .map(|v| v as u32)
-            .collect();
+        let t = Toy::new();
+        let arm = t.block([40, 20, 30], [46, 22, 32]);
+        let bucket = t.block([44, 8, 28], [50, 20, 34]);
+        let jar = t.block([50, 8, 28], [58, 20, 36]);
+        let region = union(&[&t.body, &t.tracks, &arm, &bucket, &jar]);
+        let solid = union(&[&t.board, &region]);
         let colour = |v: usize| {
             Some(if jar.get(v) {
                 Vec3::new(0.86, 0.6, 0.13)
             } else if bucket.get(v) {
                 Vec3::splat(0.32)
-            } else if tracks.get(v) {
+            } else if t.tracks.get(v) {
                 Vec3::splat(0.08)
             } else {
                 Vec3::new(0.95, 0.74, 0.1)
             })
         };
-        let got = without_neighbours(&geom, &solid, region.clone(), &anchors, colour);
+        let got = without_neighbours(&t.geom, &solid, region.clone(), &t.anchors, colour);
         let kept = |got: &Bitmap, b: &Bitmap| b.ones().filter(|&v| got.get(v)).count();
         assert_eq!(kept(&got, &jar), 0, "the jar leaves");
-        for p in [&body, &tracks, &arm, &bucket] {
+        for p in [&t.body, &t.tracks, &arm, &bucket] {
             assert_eq!(kept(&got, p), p.count(), "the toy stays whole");
         }
-        let blind = without_neighbours(&geom, &solid, region.clone(), &anchors, |_| None);
+        let blind = without_neighbours(&t.geom, &solid, region.clone(), &t.anchors, |_| None);
         assert_eq!(
             kept(&blind, &jar) + kept(&blind, &bucket),
             0,

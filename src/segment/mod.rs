@@ -22,6 +22,8 @@ pub mod plane;
 pub mod stable;
 pub mod stroke;
 pub mod supports;
+#[cfg(test)]
+mod toy;
 mod under;
 
 pub use grow::{grow_step_dense, Bound, GrowParams, Grower, GrowthRule};

@@ -147,71 +147,43 @@ impl Groups<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::Aabb;
+    use crate::segment::toy::{union, Toy};
 
-    /// A board (y < 8) carrying a toy: a body (y 16–23) on two tracks
-    /// (y 8–15, a little longer than the body) and, beside it, a box
-    /// (y 8–19) it does not stand on. The region is the body, the stroke
-    /// across its top.
+    /// The region is the toy's body, the stroke across its top; the
+    /// tracks hold it up, the jar stands beside it.
     #[test]
-    fn the_tracks_under_the_stroke_join_the_box_beside_does_not() {
-        let n = 64;
-        let geom = GridGeom::new(Aabb::new(Vec3::ZERO, Vec3::splat((n - 1) as f32)), [n; 3]);
-        let at = |v: usize| geom.coords(v).map(|c| c as i32);
-        let board = Bitmap::from_fn(geom.res, |v| at(v)[1] < 8);
-        let body = Bitmap::from_fn(geom.res, |v| {
-            let [x, y, z] = at(v);
-            (16..24).contains(&y) && (12..38).contains(&x) && (20..44).contains(&z)
-        });
-        let tracks = Bitmap::from_fn(geom.res, |v| {
-            let [x, y, z] = at(v);
-            (8..16).contains(&y) && (10..40).contains(&x) && ((20..27).contains(&z) || (37..44).contains(&z))
-        });
-        let side_box = Bitmap::from_fn(geom.res, |v| {
-            let [x, y, z] = at(v);
-            (8..20).contains(&y) && (38..48).contains(&x) && (28..36).contains(&z)
-        });
-        let solid = Bitmap::from_fn(geom.res, |v| {
-            board.get(v) || body.get(v) || tracks.get(v) || side_box.get(v)
-        });
-        let anchors: Vec<u32> = body
-            .ones()
-            .filter(|&v| {
-                let [x, y, z] = at(v);
-                y == 23 && (14..36).contains(&x) && z == 22 + (x - 14) * 19 / 22
-            })
-            .map(|v| v as u32)
-            .collect();
-        let got = with_undercarriage(&geom, &solid, body.clone(), Vec3::Y, &anchors);
+    fn the_tracks_under_the_stroke_join_the_jar_beside_does_not() {
+        let t = Toy::new();
+        let solid = union(&[&t.board, &t.body, &t.tracks, &t.jar]);
+        let got = with_undercarriage(&t.geom, &solid, t.body.clone(), Vec3::Y, &t.anchors);
         let kept = |b: &Bitmap| b.ones().filter(|&v| got.get(v)).count();
-        assert_eq!(kept(&tracks), tracks.count(), "the tracks join");
-        assert_eq!(kept(&side_box), 0, "the box beside stays out");
-        assert_eq!(kept(&board), 0, "the ground stays out");
-        assert_eq!(got.count(), body.count() + tracks.count());
+        assert_eq!(kept(&t.tracks), t.tracks.count(), "the tracks join");
+        assert_eq!(kept(&t.jar), 0, "the jar beside stays out");
+        assert_eq!(kept(&t.board), 0, "the ground stays out");
+        assert_eq!(got.count(), t.body.count() + t.tracks.count());
         // Upside down (up = −y), the body has nothing under it.
-        let flipped = with_undercarriage(&geom, &solid, body.clone(), Vec3::NEG_Y, &anchors);
-        assert!(flipped == body);
-        // A stroke on one end of the body, over neither track's middle but
-        // over one track's end: that track joins, the other does not.
-        let end: Vec<u32> = body
+        let flipped = with_undercarriage(&t.geom, &solid, t.body.clone(), Vec3::NEG_Y, &t.anchors);
+        assert!(flipped == t.body);
+        // A stroke on one end of the body over one track only: that track
+        // joins, the other does not.
+        let end: Vec<u32> = t
+            .body
             .ones()
-            .filter(|&v| {
-                let [x, y, z] = at(v);
-                y == 23 && x == 14 && (21..26).contains(&z)
-            })
+            .filter(|&v| matches!(t.at(v), [14, 23, z] if (21..26).contains(&z)))
             .map(|v| v as u32)
             .collect();
-        let one = with_undercarriage(&geom, &solid, body.clone(), Vec3::Y, &end);
-        let near_track = |v: usize| (20..27).contains(&at(v)[2]);
-        assert!(tracks.ones().filter(|&v| near_track(v)).all(|v| one.get(v)));
-        assert!(tracks.ones().filter(|&v| !near_track(v)).all(|v| !one.get(v)));
+        let one = with_undercarriage(&t.geom, &solid, t.body.clone(), Vec3::Y, &end);
+        let near_track = |v: usize| t.at(v)[2] < 30;
+        assert!(t.tracks.ones().filter(|&v| near_track(v)).all(|v| one.get(v)));
+        assert!(t.tracks.ones().filter(|&v| !near_track(v)).all(|v| !one.get(v)));
         // A body resting on the board itself: nothing under it to add.
-        let low_body = Bitmap::from_fn(geom.res, |v| {
-            let [x, y, z] = at(v);
-            (8..16).contains(&y) && (12..38).contains(&x) && (20..44).contains(&z)
-        });
-        let solid2 = Bitmap::from_fn(geom.res, |v| board.get(v) || low_body.get(v));
-        let low_anchors: Vec<u32> = low_body.ones().filter(|&v| at(v)[1] == 15).map(|v| v as u32).collect();
-        assert!(with_undercarriage(&geom, &solid2, low_body.clone(), Vec3::Y, &low_anchors) == low_body);
+        let low_body = t.block([10, 8, 20], [40, 16, 44]);
+        let low_solid = union(&[&t.board, &low_body]);
+        let low_anchors: Vec<u32> = low_body
+            .ones()
+            .filter(|&v| t.at(v)[1] == 15)
+            .map(|v| v as u32)
+            .collect();
+        assert!(with_undercarriage(&t.geom, &low_solid, low_body.clone(), Vec3::Y, &low_anchors) == low_body);
     }
 }
