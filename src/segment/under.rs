@@ -13,9 +13,8 @@
 //! region's lowest voxel, whose annulus around the region's outline is
 //! solid outside the region for [`GROUND`] of its cells (as in
 //! [`super::footing`]). Above it, the solid voxels outside the region
-//! within [`OUTER`] cells of its outline, below the region's top, are
-//! grouped (26-neighbours); a group touching the region joins it when it
-//! holds it up:
+//! and below its top are grouped (26-neighbours); a group touching the
+//! region joins it when it holds it up:
 //! - it stands on the ground (its lowest voxel within [`ON_GROUND`] levels
 //!   of it) and rises at least [`MIN_SPAN`] levels (a blurred ground's
 //!   upper levels around the region's foot are flat);
@@ -46,7 +45,7 @@ const MIN_SPAN: usize = 3;
 /// Share of a group that must lie within one cell of the region's outline.
 const UNDER_SHARE: f32 = 0.5;
 /// A group larger than this many times the region is the rest of the
-/// scene, not its undercarriage: its search stops there.
+/// scene (a shelf's boards and sides), not its undercarriage.
 const MOST: usize = 2;
 
 /// `region` with what holds it up (module docs); `solid` marks the voxels
@@ -55,31 +54,29 @@ const MOST: usize = 2;
 pub fn with_undercarriage(geom: &GridGeom, solid: &Bitmap, region: Bitmap, up: Vec3, anchors: &[u32]) -> Bitmap {
     let frame = Frame::new(geom, up);
     let voxels: Vec<usize> = region.ones().collect();
-    let (Some(lowest), Some(top)) = (
-        voxels.iter().map(|&v| frame.height(v)).min(),
-        voxels.iter().map(|&v| frame.height(v)).max(),
-    ) else {
-        return region;
-    };
-    if anchors.is_empty() {
+    if voxels.is_empty() || anchors.is_empty() {
         return region;
     }
+    let heights = || voxels.iter().map(|&v| frame.height(v));
+    let (lowest, top) = (heights().min().unwrap_or(0), heights().max().unwrap_or(0));
     let outline = Outline::of(&frame, voxels.iter().copied());
-    let annulus = outline.ring();
     let outside = |v: usize| solid.get(v) && !region.get(v);
+    let annulus = outline.ring();
     let Some(ground) = (0..=(lowest + ABOVE_LOWEST).min(top))
         .rev()
         .find(|&h| annulus.solid_share(&frame, h, outside) >= GROUND)
     else {
         return region;
     };
-    let stroke = Outline::of(&frame, anchors.iter().map(|&v| v as usize));
-    let mean = voxels.iter().map(|&v| frame.height(v) as f64).sum::<f64>() / voxels.len() as f64;
-    let candidate = |v: usize| {
-        let h = frame.height(v);
-        outside(v) && h > ground && h < top
+    let under = Under {
+        frame: &frame,
+        outline,
+        stroke: Outline::of(&frame, anchors.iter().map(|&v| v as usize)),
+        ground,
+        mean_height: heights().map(|h| h as f64).sum::<f64>() / voxels.len() as f64,
     };
-    let group_of = Groups {
+    let candidate = |v: usize| outside(v) && (ground + 1..top).contains(&frame.height(v));
+    let groups = Groups {
         geom,
         candidate: &candidate,
         most: MOST * voxels.len(),
@@ -91,27 +88,40 @@ pub fn with_undercarriage(geom: &GridGeom, solid: &Bitmap, region: Bitmap, up: V
             if seen.get(n) || !candidate(n) {
                 return;
             }
-            let Some(group) = group_of.collect(n, &mut seen) else {
-                return;
-            };
-            let heights = || group.iter().map(|&g| frame.height(g as usize));
-            let (low, high) = (heights().min().unwrap_or(0), heights().max().unwrap_or(0));
-            let span = high + 1 - low;
-            let under = group.iter().filter(|&&g| outline.near(frame.cell(g as usize))).count();
-            let group_mean = heights().map(|h| h as f64).sum::<f64>() / group.len() as f64;
-            let holds = low <= ground + ON_GROUND
-                && span >= MIN_SPAN
-                && under as f32 >= UNDER_SHARE * group.len() as f32
-                && group_mean < mean
-                && group.iter().any(|&g| stroke.near(frame.cell(g as usize)));
-            if holds {
-                for &g in &group {
+            let group = groups.collect(n, &mut seen);
+            if group.as_ref().is_some_and(|g| under.holds_up(g)) {
+                for g in group.into_iter().flatten() {
                     out.set(g as usize, true);
                 }
             }
         });
     }
     out
+}
+
+/// What a group of voxels must be to hold the region up (module docs).
+struct Under<'a> {
+    frame: &'a Frame<'a>,
+    /// The region's outline and the stroke's, seen along up.
+    outline: Outline,
+    stroke: Outline,
+    ground: usize,
+    mean_height: f64,
+}
+
+impl Under<'_> {
+    fn holds_up(&self, group: &[u32]) -> bool {
+        let heights = || group.iter().map(|&g| self.frame.height(g as usize));
+        let (low, high) = (heights().min().unwrap_or(0), heights().max().unwrap_or(0));
+        let mean = heights().map(|h| h as f64).sum::<f64>() / group.len().max(1) as f64;
+        let cell = |g: &u32| self.frame.cell(*g as usize);
+        let under = group.iter().filter(|g| self.outline.near(cell(g))).count();
+        low <= self.ground + ON_GROUND
+            && high + 1 - low >= MIN_SPAN
+            && under as f32 >= UNDER_SHARE * group.len() as f32
+            && mean < self.mean_height
+            && group.iter().any(|g| self.stroke.near(cell(g)))
+    }
 }
 
 /// The flood that groups candidate voxels (26-neighbours).
