@@ -202,9 +202,11 @@ fn footprints(
     let shade: HashMap<[i32; 2], Option<Vec3>> = by_cell
         .iter()
         .map(|(&c, vs)| {
-            let known: Vec<Vec3> = vs.iter().filter_map(|&v| colour(v as usize)).collect();
-            let mean = (!known.is_empty()).then(|| known.iter().sum::<Vec3>() / known.len() as f32);
-            (c, mean)
+            let (sum, n) = vs
+                .iter()
+                .filter_map(|&v| colour(v as usize))
+                .fold((Vec3::ZERO, 0usize), |(s, n), c| (s + c, n + 1));
+            (c, (n > 0).then(|| sum / n as f32))
         })
         .collect();
     let alike = |a: [i32; 2], b: [i32; 2]| match (shade[&a], shade[&b]) {

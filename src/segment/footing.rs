@@ -38,7 +38,7 @@ const MAX_LEVELS: usize = 3;
 /// The annulus: cells more than `INNER` and at most `OUTER` cells (along
 /// either in-plane axis) from the region's outline.
 const INNER: usize = 1;
-pub(super) const OUTER: usize = 4;
+const OUTER: usize = 4;
 
 /// `region` without the levels of ground it took (module docs); `solid`
 /// marks the voxels that can be ground, `up` is the scene's up direction

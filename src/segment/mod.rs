@@ -729,11 +729,13 @@ fn with_legs(cache: &FeatureCache, floor: f32, region: Bitmap) -> Bitmap {
 
 /// What the region's shape says about its object: a flat region gains the
 /// legs that hold it up ([`supports`]); any other region, drawn on by a
-/// stroke (`anchors`, the voxels under it, ascending), loses what stands beside it on
-/// its support ([`beside`]) and, where the field knows which way is up,
-/// the levels of the ground under it that it took ([`footing`]). (A flat region stands beside nothing: a
-/// floor's patches would otherwise count as things standing on the
-/// field's solid under it.)
+/// stroke (`anchors`, the voxels under it, ascending), gains what holds it
+/// up where the field knows which way is up ([`under`]: an excavator's
+/// tracks), loses what stands beside it on its support ([`beside`]) and,
+/// again where up is known, the levels of the ground under it that it took
+/// ([`footing`]). (A flat region stands beside nothing: a floor's patches
+/// would otherwise count as things standing on the field's solid under
+/// it.)
 fn by_structure(cache: &FeatureCache, floor: f32, region: Bitmap, anchors: &[u32]) -> Bitmap {
     debug_assert!(anchors.is_sorted(), "anchors ascend (anchor_voxels, coarse::parents)");
     let voxels: Vec<u32> = region.ones().map(|v| v as u32).collect();

@@ -124,7 +124,12 @@ impl Under<'_> {
     }
 }
 
-/// The flood that groups candidate voxels (26-neighbours).
+/// The flood that groups candidate voxels (26-neighbours). A group too
+/// large to hold the region up is still flooded whole, once (its voxels
+/// are marked seen), so a stroke visits each candidate at most once: no
+/// more than the solid voxels below the region's top (on the fern's
+/// default field the walk's strokes took the same time with the rule as
+/// without it).
 struct Groups<'a> {
     geom: &'a GridGeom,
     candidate: &'a dyn Fn(usize) -> bool,
