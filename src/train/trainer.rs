@@ -46,13 +46,8 @@ pub struct TrainConfig {
     /// (so it means the same at every resolution).
     ///
     /// Sparse Adam moves a voxel by about the learning rate each step a ray
-    /// touches it, and on a fine grid a step touches each voxel rarely, so
-    /// within minutes the fit is bound by steps, not rays (8192-ray batches
-    /// lost to 4096 at equal time on lego at 800×800). Twice the earlier
-    /// 0.1 / 0.05, measured on each preset (held-out PSNR, radiance only):
-    /// lego 800×800 30.66 → 31.18 dB (10 val views; 4× gave 31.28 with worse
-    /// coarse stages), lego 200×200 33.59 → 33.76 dB (100 views), fern
-    /// `images_8` 25.35 → 25.59 dB (each of the 3 views better).
+    /// touches it; fine grids, whose voxels a step touches rarely, take
+    /// twice these ([`super::session::FINE_GRID_LR`]).
     pub lr_density: f32,
     pub lr_sh: f32,
     pub lr_features: f32,
@@ -162,8 +157,8 @@ impl Default for TrainConfig {
             stages: 4,
             last_stage_at: 0.5,
             sh_degree: 2,
-            lr_density: 0.2,
-            lr_sh: 0.1,
+            lr_density: 0.1,
+            lr_sh: 0.05,
             lr_features: 0.1,
             lr_final: 0.1,
             init_alpha: 1e-4,
