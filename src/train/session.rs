@@ -122,9 +122,7 @@ pub fn preset(kind: DatasetKind) -> TrainConfig {
         // TV throughout, 25.45 dB without it on the full grid (whose steps
         // are also a fifth faster), 27.3 dB on the training batches instead
         // of 25.9; 4500 iterations keep 15 minutes on two cores.
-        DatasetKind::Llff => TrainConfig {
-            lr_density: base.lr_density * FINE_GRID_LR,
-            lr_sh: base.lr_sh * FINE_GRID_LR,
+        DatasetKind::Llff => with_fine_grid_rates(TrainConfig {
             iters: 4500,
             res: 448,
             coarse_res: 96,
@@ -135,7 +133,7 @@ pub fn preset(kind: DatasetKind) -> TrainConfig {
             tv_keep: 0.25,
             tv_last_stage: 0.0,
             ..base
-        },
+        }),
         DatasetKind::Nerfstudio | DatasetKind::Colmap => TrainConfig {
             iters: 5000,
             res: 160,
@@ -158,6 +156,15 @@ pub fn preset(kind: DatasetKind) -> TrainConfig {
 /// stroke took 286 of the excavator's voxels (3D IoU 0.657), so they keep
 /// the base rates.
 pub const FINE_GRID_LR: f32 = 2.0;
+
+/// `c` with its density and colour learning rates times [`FINE_GRID_LR`].
+fn with_fine_grid_rates(c: TrainConfig) -> TrainConfig {
+    TrainConfig {
+        lr_density: c.lr_density * FINE_GRID_LR,
+        lr_sh: c.lr_sh * FINE_GRID_LR,
+        ..c
+    }
+}
 
 /// Longest side of the grid [`preset_for`] gives full-size images.
 pub const MAX_IMAGE_SCALED_RES: usize = 360;
@@ -189,8 +196,7 @@ pub fn preset_for(kind: DatasetKind, side: u32) -> TrainConfig {
         let want = (side as f32 / PIXELS_PER_POINT).round() as usize;
         c.res = c.res.max(want.min(MAX_IMAGE_SCALED_RES));
         c.mining = FULL_SIZE_MINING;
-        c.lr_density *= FINE_GRID_LR;
-        c.lr_sh *= FINE_GRID_LR;
+        c = with_fine_grid_rates(c);
     }
     c
 }
