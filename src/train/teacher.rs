@@ -264,6 +264,28 @@ impl TeacherSource {
         }
     }
 
+    /// This source with an ONNX teacher's automatic input size (0) replaced
+    /// by `size` (itself 0 keeps the automatic one): a capture's default
+    /// ([`super::default_teacher_size`]), known once its images are read.
+    pub fn with_default_size(self, default: u32) -> TeacherSource {
+        match self {
+            TeacherSource::Onnx {
+                path,
+                output,
+                size: 0,
+                shifts,
+                tiles,
+            } => TeacherSource::Onnx {
+                path,
+                output,
+                size: default,
+                shifts,
+                tiles,
+            },
+            other => other,
+        }
+    }
+
     fn describe(&self) -> String {
         match self {
             TeacherSource::Onnx {

@@ -51,6 +51,11 @@ pub struct TrainConfig {
     pub lr_density: f32,
     pub lr_sh: f32,
     pub lr_features: f32,
+    /// Factor on the density and colour learning rates on the last
+    /// (full-resolution) stage: the finest grid's voxels are touched least
+    /// often per step, so they can take larger steps than the coarse
+    /// stages, whose cells many rays share.
+    pub lr_last_stage: f32,
     /// Learning rates decay exponentially to this fraction at the end.
     pub lr_final: f32,
     /// Initial per-sample opacity (empty but trainable).
@@ -160,6 +165,7 @@ impl Default for TrainConfig {
             lr_density: 0.1,
             lr_sh: 0.05,
             lr_features: 0.1,
+            lr_last_stage: 1.0,
             lr_final: 0.1,
             init_alpha: 1e-4,
             weight_floor: 1e-4,
@@ -257,6 +263,7 @@ impl TrainConfig {
             self.lr_density,
             self.lr_sh,
             self.lr_features,
+            self.lr_last_stage,
             self.lr_final,
             self.weight_floor,
             self.prune_alpha,
@@ -305,6 +312,11 @@ impl TrainConfig {
     /// `tv_last_stage` from the last stage's first iteration on, else 1.
     pub fn tv_scale(&self, iter: usize) -> f32 {
         self.by_stage(iter, 1.0, self.tv_last_stage)
+    }
+    /// The factor on the density and colour learning rates at iteration
+    /// `iter`: `lr_last_stage` from the last stage's first iteration on.
+    pub fn lr_scale(&self, iter: usize) -> f32 {
+        self.by_stage(iter, 1.0, self.lr_last_stage)
     }
     /// The distortion weight at iteration `iter`.
     pub fn distortion_at(&self, iter: usize) -> f32 {
@@ -791,7 +803,7 @@ impl Trainer {
             self.config.lr_final
         } else {
             self.decay(0, self.config.iters)
-        };
+        } * self.config.lr_scale(self.iter);
         // Frozen geometry (distilling into a finished field): the backward
         // pass recorded no density or colour gradients, nothing to step.
         if !self.radiance_frozen() {
@@ -1092,6 +1104,76 @@ mod tests {
             ..config
         };
         assert_eq!(trainer(true, &off).batch_background(true), white, "turned off");
+    }
+
+    /// `lr_last_stage` scales the density step on the last stage, and only
+    /// there: Adam's first step moves each touched value by about its
+    /// learning rate, so a factor 2 moves every value exactly twice as far.
+    #[test]
+    fn the_last_stage_takes_its_own_learning_rate() {
+        use crate::camera::{Camera, Intrinsics};
+        use crate::data::Image;
+        let cam = Camera::look_at(
+            Intrinsics::from_fov_x(8, 6, 0.8),
+            Vec3::new(0.0, 0.0, 3.0),
+            Vec3::ZERO,
+            Vec3::Y,
+        );
+        let image = Image {
+            width: 8,
+            height: 6,
+            rgb: (0..144).map(|i| (i % 7) as f32 / 7.0).collect(),
+            alpha: None,
+        };
+        let bounds = Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0));
+        // The change of every density value after the first step.
+        let first_step = |stages: usize, lr_last_stage: f32| {
+            let config = TrainConfig {
+                iters: 8,
+                batch: 32,
+                res: 8,
+                coarse_res: 8,
+                stages,
+                lr_last_stage,
+                random_background: false,
+                ..Default::default()
+            };
+            let rays = RaySet::build(&[(cam, &image)]).unwrap();
+            let mut t = Trainer::new(config, rays, bounds).unwrap();
+            let before = t.model.density.clone();
+            t.step().unwrap();
+            before
+                .iter()
+                .zip(&t.model.density)
+                .map(|(a, b)| b - a)
+                .collect::<Vec<f32>>()
+        };
+        let close = |a: &[f32], b: &[f32], k: f32| {
+            a.iter()
+                .zip(b)
+                .all(|(x, y)| (k * x - y).abs() <= 1e-4 * x.abs().max(1e-3))
+        };
+        // One stage: it is the last, from the first step on.
+        let (one, two) = (first_step(1, 1.0), first_step(1, 2.0));
+        assert!(one.iter().any(|d| d.abs() > 1e-4), "the step moved nothing");
+        assert!(close(&one, &two, 2.0));
+        // Two stages (the last from iteration 4): the first keeps the base rate.
+        assert!(close(&first_step(2, 1.0), &first_step(2, 2.0), 1.0));
+        let c = TrainConfig {
+            lr_last_stage: 3.0,
+            iters: 8,
+            stages: 2,
+            ..Default::default()
+        };
+        assert_eq!((c.lr_scale(3), c.lr_scale(4)), (1.0, 3.0));
+        for bad in [-1.0, f32::NAN] {
+            assert!(TrainConfig {
+                lr_last_stage: bad,
+                ..Default::default()
+            }
+            .validate()
+            .is_err());
+        }
     }
 
     #[test]
