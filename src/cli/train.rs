@@ -263,7 +263,6 @@ pub fn run(a: Args) -> Result<()> {
         .map(|&i| ds.images[i].width.max(ds.images[i].height))
         .max()
         .unwrap_or(0);
-    let teacher = teacher.map(|t| t.with_default_size(isrf::train::default_teacher_size(kind, side)));
     let config = load_config(&a, kind, side, teacher.is_some())?;
     let ckpt = a
         .checkpoint

@@ -29,8 +29,8 @@ pub use march::{MarchOpts, RayOut, Scratch};
 pub use model::{DenseGrid, Model};
 pub use rays::{default_bounds, RaySet};
 pub use session::{
-    default_teacher, default_teacher_shifts, default_teacher_size, preset, preset_for, preset_with, EvalReport,
-    Quality, Session, DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS, ORBIT_TEACHER_SHIFTS,
+    default_teacher, default_teacher_shifts, preset, preset_for, preset_with, EvalReport, Quality, Session,
+    DEFAULT_FEATURE_DIMS, DEFAULT_FEATURE_ITERS, ORBIT_TEACHER_SHIFTS,
 };
 pub use teacher::{default_cache_dir, teacher_features, FeatureMap, FeatureMaps, TeacherReport, TeacherSource};
 pub use trainer::{psnr_of, step_of, StepStats, TrainConfig, Trainer};

@@ -599,7 +599,7 @@ pub fn remap_rows_in_place<T: Copy + Default + Send + Sync>(
         }
     }
     values.truncate(new.len() * stride);
-    // Large buffers are mapped on their own (`mallopt` in main), so this
+    // Large buffers are mapped on their own (`crate::heap`, set in main), so this
     // gives the tail back without copying.
     values.shrink_to_fit();
 }

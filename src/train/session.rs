@@ -38,22 +38,6 @@ pub fn default_teacher_shifts(kind: crate::data::DatasetKind) -> u32 {
     }
 }
 
-/// The long side of the default teacher's input for a capture of `kind`
-/// whose training images are `side` pixels on their long side (0: the
-/// automatic size, [`super::vit::input_dims`]). Full-size NeRF-synthetic
-/// images get [`super::vit::AUTO_MIN_SIDE`] instead of the automatic 672:
-/// on lego at 800×800 the 100 maps take 171 s instead of 452 s (two cores),
-/// and lego's train-view stroke still scores alpha IoU 0.9952 / min 0.9829
-/// on the 100 val views (0.9962 / 0.9899 at 672), which keeps a fresh
-/// `--preset best` run within 30 minutes.
-pub fn default_teacher_size(kind: crate::data::DatasetKind, side: u32) -> u32 {
-    if full_size_synthetic(kind, side) {
-        super::vit::AUTO_MIN_SIDE
-    } else {
-        0
-    }
-}
-
 /// Shifted runs per axis for features lifted from views rendered around a
 /// field (`isrf features --orbit`): one-stroke selection of splats
 /// (`isrf bench splats`, three K-means seeds) 0.470–0.487 mean IoU with one
@@ -641,33 +625,6 @@ mod tests {
         }
         assert_eq!(preset_for(DatasetKind::Blender, 200).lr_last_stage, 1.0);
         assert_eq!(preset(DatasetKind::Llff).lr_last_stage, 1.0);
-    }
-
-    #[test]
-    fn full_size_synthetic_images_get_a_smaller_teacher_input() {
-        use crate::train::teacher::TeacherSource;
-        assert_eq!(
-            default_teacher_size(DatasetKind::Blender, 800),
-            crate::train::vit::AUTO_MIN_SIDE
-        );
-        assert_eq!(default_teacher_size(DatasetKind::Blender, 200), 0);
-        assert_eq!(default_teacher_size(DatasetKind::Llff, 1008), 0);
-        let onnx = |size| TeacherSource::Onnx {
-            path: "m.onnx".into(),
-            output: "out".into(),
-            size,
-            shifts: 1,
-            tiles: 1,
-        };
-        let size_of = |s: TeacherSource| match s {
-            TeacherSource::Onnx { size, .. } => size,
-            TeacherSource::Precomputed(_) => unreachable!("an ONNX source stays one"),
-        };
-        // The automatic size takes the capture's default; a size the user gave stays.
-        assert_eq!(size_of(onnx(0).with_default_size(448)), 448);
-        assert_eq!(size_of(onnx(672).with_default_size(448)), 672);
-        let maps = TeacherSource::Precomputed("maps".into()).with_default_size(448);
-        assert!(matches!(maps, TeacherSource::Precomputed(_)));
     }
 
     #[test]

@@ -264,28 +264,6 @@ impl TeacherSource {
         }
     }
 
-    /// This source with an ONNX teacher's automatic input size (0) replaced
-    /// by `size` (itself 0 keeps the automatic one): a capture's default
-    /// ([`super::default_teacher_size`]), known once its images are read.
-    pub fn with_default_size(self, default: u32) -> TeacherSource {
-        match self {
-            TeacherSource::Onnx {
-                path,
-                output,
-                size: 0,
-                shifts,
-                tiles,
-            } => TeacherSource::Onnx {
-                path,
-                output,
-                size: default,
-                shifts,
-                tiles,
-            },
-            other => other,
-        }
-    }
-
     fn describe(&self) -> String {
         match self {
             TeacherSource::Onnx {
@@ -387,6 +365,9 @@ pub fn teacher_features(
             shifts,
             tiles,
         } => {
+            // The network allocates and frees activations of megabytes
+            // per layer: kept in the heaps while it runs (`Heap::Scratch`).
+            let _heap = crate::heap::scoped(crate::heap::Heap::Scratch);
             // One prepared model per input size (captures rarely mix sizes).
             let mut vits: Vec<super::vit::Vit> = Vec::new();
             let mut maps = Vec::with_capacity(images.len());
