@@ -1051,25 +1051,30 @@ mod tests {
         }
     }
 
-    /// Photos with alpha train each step over its own random background
-    /// (and a step trains on them); without alpha, with the setting off,
-    /// or while geometry is frozen, over the dataset's.
-    #[test]
-    fn steps_draw_their_own_background_only_where_alpha_is_known() {
+    /// An 8×6 view of the unit box from 3 units away, and its photo.
+    fn tiny_view(rgb: Vec<f32>, alpha: Option<Vec<f32>>) -> (crate::camera::Camera, crate::data::Image) {
         use crate::camera::{Camera, Intrinsics};
-        use crate::data::Image;
         let cam = Camera::look_at(
             Intrinsics::from_fov_x(8, 6, 0.8),
             Vec3::new(0.0, 0.0, 3.0),
             Vec3::ZERO,
             Vec3::Y,
         );
-        let image = |alpha: bool| Image {
+        let image = crate::data::Image {
             width: 8,
             height: 6,
-            rgb: vec![0.8; 144],
-            alpha: alpha.then(|| vec![0.5; 48]),
+            rgb,
+            alpha,
         };
+        (cam, image)
+    }
+
+    /// Photos with alpha train each step over its own random background
+    /// (and a step trains on them); without alpha, with the setting off,
+    /// or while geometry is frozen, over the dataset's.
+    #[test]
+    fn steps_draw_their_own_background_only_where_alpha_is_known() {
+        let view = |alpha: bool| tiny_view(vec![0.8; 144], alpha.then(|| vec![0.5; 48]));
         let config = TrainConfig {
             iters: 4,
             batch: 16,
@@ -1080,7 +1085,8 @@ mod tests {
         };
         let bounds = Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0));
         let trainer = |alpha: bool, config: &TrainConfig| {
-            let rays = RaySet::build(&[(cam, &image(alpha))]).unwrap();
+            let (cam, image) = view(alpha);
+            let rays = RaySet::build(&[(cam, &image)]).unwrap();
             Trainer::new(config.clone(), rays, bounds).unwrap()
         };
         let white = Vec3::ONE;
@@ -1111,20 +1117,7 @@ mod tests {
     /// learning rate, so a factor 2 moves every value exactly twice as far.
     #[test]
     fn the_last_stage_takes_its_own_learning_rate() {
-        use crate::camera::{Camera, Intrinsics};
-        use crate::data::Image;
-        let cam = Camera::look_at(
-            Intrinsics::from_fov_x(8, 6, 0.8),
-            Vec3::new(0.0, 0.0, 3.0),
-            Vec3::ZERO,
-            Vec3::Y,
-        );
-        let image = Image {
-            width: 8,
-            height: 6,
-            rgb: (0..144).map(|i| (i % 7) as f32 / 7.0).collect(),
-            alpha: None,
-        };
+        let (cam, image) = tiny_view((0..144).map(|i| (i % 7) as f32 / 7.0).collect(), None);
         let bounds = Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0));
         // The change of every density value after the first step.
         let first_step = |stages: usize, lr_last_stage: f32| {
