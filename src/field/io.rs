@@ -774,15 +774,20 @@ impl<'a> Tensors<'a> {
             }
         }
     }
-    fn finite(&self, name: &str, mut v: impl Iterator<Item = f32>) -> Result<()> {
-        if let Some(pos) = v.position(|x| !x.is_finite()) {
-            return Err(Error::bad_file(
-                self.path,
-                format!("tensor '{name}' holds a non-finite value (NaN or infinity) at element {pos}"),
-            ));
-        }
-        Ok(())
+    fn finite(&self, name: &str, v: impl Iterator<Item = f32>) -> Result<()> {
+        check_finite(self.path, name, v)
     }
+}
+
+/// An error naming the first non-finite value of tensor `name` in `path`.
+pub(crate) fn check_finite(path: &Path, name: &str, mut v: impl Iterator<Item = f32>) -> Result<()> {
+    if let Some(pos) = v.position(|x| !x.is_finite()) {
+        return Err(Error::bad_file(
+            path,
+            format!("tensor '{name}' holds a non-finite value (NaN or infinity) at element {pos}"),
+        ));
+    }
+    Ok(())
 }
 
 /// Parses and validates the header in a field file's metadata.

@@ -13,6 +13,7 @@ pub mod macro_grid;
 pub mod runs;
 pub mod sh;
 pub mod sparse;
+pub mod tensor_file;
 pub mod vm;
 
 pub use bitmap::{Bitmap, RankIndex};

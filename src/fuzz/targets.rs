@@ -66,6 +66,14 @@ pub static TARGETS: &[Target] = &[
         run: |p| crate::segment::bitmap_file::load_bitmap(p).map(drop),
     },
     Target {
+        name: "checkpoint",
+        about: "training checkpoints (.safetensors), read tensor by tensor",
+        file: "input.safetensors",
+        seeds: |dir| Ok(vec![checkpoint_seed(dir)?]),
+        corpus: &[],
+        run: |p| crate::train::checkpoint::load(p).map(drop),
+    },
+    Target {
         name: "labels",
         about: "demo ground-truth label grids (.safetensors)",
         file: "input.safetensors",
@@ -487,4 +495,26 @@ fn png_seeds() -> Vec<Vec<u8>> {
     .into_iter()
     .filter_map(|img| encode(img).ok())
     .collect()
+}
+
+/// A checkpoint of a tiny field after two training steps (SH, Adam moments,
+/// history: every tensor a checkpoint holds but features).
+fn checkpoint_seed(dir: &Path) -> Result<Vec<u8>> {
+    use crate::train::{RaySet, TrainConfig, Trainer};
+    let (cam, image) = crate::train::trainer::tiny_view((0..144).map(|i| (i % 5) as f32 / 5.0).collect(), None);
+    let config = TrainConfig {
+        iters: 4,
+        batch: 16,
+        res: 6,
+        coarse_res: 6,
+        stages: 1,
+        ..Default::default()
+    };
+    let bounds = crate::field::Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0));
+    let mut t = Trainer::new(config, RaySet::build(&[(cam, &image)])?, bounds)?;
+    t.step()?;
+    t.step()?;
+    let path = dir.join("seed.ckpt.safetensors");
+    crate::train::checkpoint::save(&path, &t.config, &t.model, &t.opt, t.iter, &t.history, "fuzz seed")?;
+    std::fs::read(&path).map_err(|e| Error::io(&path, e))
 }

@@ -15,7 +15,8 @@ use super::trainer::{OptState, StepStats, TrainConfig};
 use super::vm::{VmAppearance, VmShape};
 use crate::error::{Error, Result};
 use crate::field::geom::check_res;
-use crate::field::io::{check_format, parse, read_all, read_metadata, write_tensors, Tensors};
+use crate::field::io::{check_format, read_metadata, write_tensors};
+use crate::field::tensor_file::TensorFile;
 use crate::field::{Aabb, GridGeom};
 use glam::Vec3;
 use safetensors::tensor::Dtype;
@@ -162,11 +163,9 @@ pub fn load(path: &Path) -> Result<Restored> {
     if !bounds.is_valid() {
         return Err(bad(format!("bounds {:?} are not a valid box", state.bounds)));
     }
-    let bytes = read_all(path)?;
-    let t = Tensors {
-        st: parse(&bytes, path)?,
-        path,
-    };
+    // Tensor by tensor: a full-size checkpoint is not held whole beside
+    // what is parsed from it.
+    let t = TensorFile::open(path)?;
     let geom = GridGeom::new(bounds, state.res);
     let n = geom.len();
     let k = 3 * super::model::sh_coeffs(state.degree);
@@ -180,10 +179,7 @@ pub fn load(path: &Path) -> Result<Restored> {
     // SH rows per active voxel; checkpoints written before hold a row per
     // grid point (the model accepts either).
     let active_count: usize = active.iter().map(|w| w.count_ones() as usize).sum();
-    let sh_len =
-        t.st.tensor("sh")
-            .map(|v| v.shape().iter().product::<usize>())
-            .unwrap_or(0);
+    let sh_len = t.shape("sh").map_or(0, |s| s.iter().product::<usize>());
     let sh = t.f32("sh", &[if sh_len == n * k { n * k } else { active_count * k }])?;
     // The Adam moments saved beside array `name` of `len` values.
     let moments = |name: &str, len: usize| -> Result<Moments> {
@@ -217,13 +213,12 @@ pub fn load(path: &Path) -> Result<Restored> {
         }
         None => None,
     };
-    let hist_len =
-        t.st.tensor("history")
-            .map_err(|_| bad("missing tensor 'history'".into()))?
-            .shape()
-            .first()
-            .copied()
-            .unwrap_or(0);
+    let hist_len = t
+        .shape("history")
+        .ok_or_else(|| bad("missing tensor 'history'".into()))?
+        .first()
+        .copied()
+        .unwrap_or(0);
     if hist_len % HIST != 0 {
         return Err(bad(format!("history has {hist_len} values, not a multiple of {HIST}")));
     }
@@ -246,10 +241,7 @@ pub fn load(path: &Path) -> Result<Restored> {
     // before they were hold them for every grid point.
     let slot_moments = |name: &str, stride: usize| -> Result<Moments> {
         let full_len = n * stride;
-        let len =
-            t.st.tensor(&format!("m.{name}"))
-                .map(|v| v.shape().iter().product::<usize>())
-                .unwrap_or(0);
+        let len = t.shape(&format!("m.{name}")).map_or(0, |s| s.iter().product::<usize>());
         if len == 0 {
             // Written while distilling into the frozen field, which keeps
             // no moments for it.

@@ -1000,6 +1000,25 @@ pub fn psnr_of(mse: f32) -> f32 {
     }
 }
 
+/// An 8×6 view of the box ±1 from 3 units away, and its photo (tests and
+/// the checkpoint fuzz target's seed).
+pub(crate) fn tiny_view(rgb: Vec<f32>, alpha: Option<Vec<f32>>) -> (crate::camera::Camera, crate::data::Image) {
+    use crate::camera::{Camera, Intrinsics};
+    let cam = Camera::look_at(
+        Intrinsics::from_fov_x(8, 6, 0.8),
+        Vec3::new(0.0, 0.0, 3.0),
+        Vec3::ZERO,
+        Vec3::Y,
+    );
+    let image = crate::data::Image {
+        width: 8,
+        height: 6,
+        rgb,
+        alpha,
+    };
+    (cam, image)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1049,24 +1068,6 @@ mod tests {
             };
             assert!(c.validate().is_err(), "{bad}");
         }
-    }
-
-    /// An 8×6 view of the unit box from 3 units away, and its photo.
-    fn tiny_view(rgb: Vec<f32>, alpha: Option<Vec<f32>>) -> (crate::camera::Camera, crate::data::Image) {
-        use crate::camera::{Camera, Intrinsics};
-        let cam = Camera::look_at(
-            Intrinsics::from_fov_x(8, 6, 0.8),
-            Vec3::new(0.0, 0.0, 3.0),
-            Vec3::ZERO,
-            Vec3::Y,
-        );
-        let image = crate::data::Image {
-            width: 8,
-            height: 6,
-            rgb,
-            alpha,
-        };
-        (cam, image)
     }
 
     /// Photos with alpha train each step over its own random background
