@@ -608,8 +608,18 @@ pub fn save_with(field: &Field, path: &Path, features: Storage) -> Result<()> {
 /// Reads only the safetensors header of `path`: its `__metadata__` map and the
 /// file's total length. Rejects files too short to hold the header they claim.
 pub fn read_metadata(path: &Path) -> Result<(HashMap<String, String>, u64)> {
-    let bad = |r: String| Error::bad_file(path, r);
     let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let (header, len) = read_header_json(&mut f, path)?;
+    Ok((metadata_of(&header), len))
+}
+
+/// The JSON header of the safetensors file `f` (open at its start, named
+/// `path` in errors), leaving `f` at the data section; and the file's length.
+pub(crate) fn read_header_json(
+    f: &mut std::fs::File,
+    path: &Path,
+) -> Result<(serde_json::Map<String, serde_json::Value>, u64)> {
+    let bad = |r: String| Error::bad_file(path, r);
     let len = f.metadata().map_err(|e| Error::io(path, e))?.len();
     if len < 8 {
         return Err(bad(format!(
@@ -626,13 +636,16 @@ pub fn read_metadata(path: &Path) -> Result<(HashMap<String, String>, u64)> {
     }
     let mut h = vec![0u8; n as usize];
     f.read_exact(&mut h).map_err(|e| Error::io(path, e))?;
-    let v: serde_json::Value =
-        serde_json::from_slice(&h).map_err(|e| bad(format!("corrupt safetensors header: {e}")))?;
-    let meta = v
+    let header = serde_json::from_slice(&h).map_err(|e| bad(format!("corrupt safetensors header: {e}")))?;
+    Ok((header, len))
+}
+
+/// The `__metadata__` map of a safetensors header (empty if it has none).
+pub(crate) fn metadata_of(header: &serde_json::Map<String, serde_json::Value>) -> HashMap<String, String> {
+    header
         .get("__metadata__")
         .and_then(|m| serde_json::from_value::<HashMap<String, String>>(m.clone()).ok())
-        .unwrap_or_default();
-    Ok((meta, len))
+        .unwrap_or_default()
 }
 
 /// Bytes of a safetensors file's data section: the stored tensors, without
@@ -702,18 +715,7 @@ impl<'a> Tensors<'a> {
             .st
             .tensor(name)
             .map_err(|_| Error::bad_file(self.path, format!("missing tensor '{name}'")))?;
-        if t.dtype() != dtype {
-            return Err(Error::bad_file(
-                self.path,
-                format!("tensor '{name}' has dtype {:?}, expected {dtype:?}", t.dtype()),
-            ));
-        }
-        if t.shape() != shape {
-            return Err(Error::bad_file(
-                self.path,
-                format!("tensor '{name}' has shape {:?}, expected {shape:?}", t.shape()),
-            ));
-        }
+        check_kind(self.path, name, (t.dtype(), t.shape()), (dtype, shape))?;
         Ok(t)
     }
     pub fn has(&self, name: &str) -> bool {
@@ -777,6 +779,23 @@ impl<'a> Tensors<'a> {
     fn finite(&self, name: &str, v: impl Iterator<Item = f32>) -> Result<()> {
         check_finite(self.path, name, v)
     }
+}
+
+/// An error unless tensor `name` in `path`, `got` (dtype, shape), is `want`.
+pub(crate) fn check_kind(path: &Path, name: &str, got: (Dtype, &[usize]), want: (Dtype, &[usize])) -> Result<()> {
+    if got.0 != want.0 {
+        return Err(Error::bad_file(
+            path,
+            format!("tensor '{name}' has dtype {:?}, expected {:?}", got.0, want.0),
+        ));
+    }
+    if got.1 != want.1 {
+        return Err(Error::bad_file(
+            path,
+            format!("tensor '{name}' has shape {:?}, expected {:?}", got.1, want.1),
+        ));
+    }
+    Ok(())
 }
 
 /// An error naming the first non-finite value of tensor `name` in `path`.

@@ -6,16 +6,13 @@
 //! training photos (a resumed run peaked at 2.82 GB). Here only the header
 //! is held; each tensor is read straight into the array that keeps it.
 
-use super::io::check_finite;
+use super::io::{check_finite, check_kind, metadata_of, read_header_json};
 use crate::error::{Error, Result};
 use safetensors::tensor::{Dtype, TensorInfo};
 use std::collections::HashMap;
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
 use std::path::Path;
-
-/// Longest safetensors header read (the format's own limit).
-const MAX_HEADER: u64 = 100_000_000;
 
 /// An open safetensors file and its validated header.
 pub struct TensorFile<'a> {
@@ -24,6 +21,7 @@ pub struct TensorFile<'a> {
     /// Where the data section starts in the file.
     data_start: u64,
     infos: HashMap<String, TensorInfo>,
+    metadata: HashMap<String, String>,
 }
 
 impl<'a> TensorFile<'a> {
@@ -32,23 +30,11 @@ impl<'a> TensorFile<'a> {
     pub fn open(path: &'a Path) -> Result<TensorFile<'a>> {
         let bad = |r: String| Error::bad_file(path, r);
         let mut file = File::open(path).map_err(|e| Error::io(path, e))?;
-        let len = file.metadata().map_err(|e| Error::io(path, e))?.len();
-        let mut n = [0u8; 8];
-        file.read_exact(&mut n)
-            .map_err(|_| bad(format!("truncated: {len} bytes is too short for a safetensors file")))?;
-        let n = u64::from_le_bytes(n);
-        if n > MAX_HEADER || 8 + n > len {
-            return Err(bad(format!(
-                "corrupt or truncated: header length {n} does not fit in a {len}-byte file"
-            )));
-        }
-        let mut header = vec![0u8; n as usize];
-        file.read_exact(&mut header).map_err(|e| Error::io(path, e))?;
-        let entries: HashMap<String, serde_json::Value> =
-            serde_json::from_slice(&header).map_err(|e| bad(format!("corrupt safetensors header: {e}")))?;
-        let data_start = 8 + n;
+        let (header, len) = read_header_json(&mut file, path)?;
+        let metadata = metadata_of(&header);
+        let data_start = file.stream_position().map_err(|e| Error::io(path, e))?;
         let mut infos = HashMap::new();
-        for (name, v) in entries {
+        for (name, v) in header {
             if name == "__metadata__" {
                 continue;
             }
@@ -59,7 +45,7 @@ impl<'a> TensorFile<'a> {
                 .shape
                 .iter()
                 .try_fold(info.dtype.bitsize() / 8, |a, &d| a.checked_mul(d));
-            if end < begin || want != Some(end - begin) || data_start + end as u64 > len {
+            if end < begin || want != Some(end - begin) || end as u64 > len - data_start {
                 return Err(bad(format!(
                     "corrupt or truncated: tensor '{name}' ({:?} {:?}) claims bytes {begin}..{end} of a {}-byte data section",
                     info.dtype,
@@ -74,7 +60,13 @@ impl<'a> TensorFile<'a> {
             path,
             data_start,
             infos,
+            metadata,
         })
+    }
+
+    /// The header's `__metadata__` map.
+    pub fn metadata(&self) -> &HashMap<String, String> {
+        &self.metadata
     }
 
     /// The shape of tensor `name`, if the file has it.
@@ -94,18 +86,7 @@ impl<'a> TensorFile<'a> {
             .infos
             .get(name)
             .ok_or_else(|| Error::bad_file(self.path, format!("missing tensor '{name}'")))?;
-        if info.dtype != dtype {
-            return Err(Error::bad_file(
-                self.path,
-                format!("tensor '{name}' has dtype {:?}, expected {dtype:?}", info.dtype),
-            ));
-        }
-        if info.shape != shape {
-            return Err(Error::bad_file(
-                self.path,
-                format!("tensor '{name}' has shape {:?}, expected {shape:?}", info.shape),
-            ));
-        }
+        check_kind(self.path, name, (info.dtype, &info.shape), (dtype, shape))?;
         let (begin, end) = info.data_offsets;
         let mut out = vec![T::zeroed(); (end - begin) / std::mem::size_of::<T>()];
         let mut f = &self.file;

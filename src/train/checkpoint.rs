@@ -15,7 +15,7 @@ use super::trainer::{OptState, StepStats, TrainConfig};
 use super::vm::{VmAppearance, VmShape};
 use crate::error::{Error, Result};
 use crate::field::geom::check_res;
-use crate::field::io::{check_format, read_metadata, write_tensors};
+use crate::field::io::{check_format, write_tensors};
 use crate::field::tensor_file::TensorFile;
 use crate::field::{Aabb, GridGeom};
 use glam::Vec3;
@@ -147,8 +147,11 @@ impl<'a> Outgoing<'a> {
 
 /// Reads a checkpoint, validating every shape against its state.
 pub fn load(path: &Path) -> Result<Restored> {
-    let (meta, _) = read_metadata(path)?;
-    check_format(&meta, FORMAT, VERSION, path)?;
+    // Tensor by tensor: a full-size checkpoint is not held whole beside
+    // what is parsed from it.
+    let t = TensorFile::open(path)?;
+    let meta = t.metadata();
+    check_format(meta, FORMAT, VERSION, path)?;
     let bad = |r: String| Error::bad_file(path, r);
     let state: State = serde_json::from_str(
         meta.get("state")
@@ -163,9 +166,6 @@ pub fn load(path: &Path) -> Result<Restored> {
     if !bounds.is_valid() {
         return Err(bad(format!("bounds {:?} are not a valid box", state.bounds)));
     }
-    // Tensor by tensor: a full-size checkpoint is not held whole beside
-    // what is parsed from it.
-    let t = TensorFile::open(path)?;
     let geom = GridGeom::new(bounds, state.res);
     let n = geom.len();
     let k = 3 * super::model::sh_coeffs(state.degree);

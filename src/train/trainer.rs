@@ -47,7 +47,9 @@ pub struct TrainConfig {
     ///
     /// Sparse Adam moves a voxel by about the learning rate each step a ray
     /// touches it; fine grids, whose voxels a step touches rarely, take
-    /// twice these ([`super::session::FINE_GRID_LR`]).
+    /// twice these ([`super::session::FINE_GRID_LR`]), and full-size
+    /// NeRF-synthetic grids twice again on their last stage
+    /// ([`Self::lr_last_stage`]).
     pub lr_density: f32,
     pub lr_sh: f32,
     pub lr_features: f32,
