@@ -396,3 +396,29 @@ fn rendering_without_colour_keeps_features_depth_and_opacity_to_the_bit() {
         );
     }
 }
+
+#[test]
+fn samples_at_or_below_the_weight_floor_add_no_colour() {
+    // σ = 0.5 sampled every 0.001: no sample weighs more than σ·δ = 5e-4.
+    let scene = Scene::new(vec![Layer::new(Arc::new(slab(0.5, 41)))]);
+    let at = |min_weight: f32| {
+        let opts = RenderOptions {
+            step: isrf::render::Step::World(0.001),
+            min_weight,
+            ..Default::default()
+        };
+        render_rays(&scene, &[ray_x()], &opts).unwrap()
+    };
+    let (exact, light, above) = (at(0.0), at(1e-5), at(1e-3));
+    // The floor only decides what is shaded, never how light passes.
+    assert_eq!(exact.opacity, light.opacity);
+    assert_eq!(exact.opacity, above.opacity);
+    assert!(exact.opacity[0] > 0.3);
+    // Below every sample's weight but the ramp's faintest: about the same.
+    assert!((exact.color[0] - light.color[0]).abs().max_element() < 1e-4);
+    // Above every weight: nothing is shaded, only the background shows.
+    let t = 1.0 - exact.opacity[0];
+    assert!((above.color[0] - Vec3::splat(t)).abs().max_element() < 1e-6, "{}", above.color[0]);
+    assert_eq!(above.depth[0], 0.0);
+    assert!((exact.color[0] - above.color[0]).abs().max_element() > 0.05);
+}

@@ -303,12 +303,18 @@ fn attach_teacher(session: &mut Session, src: &TeacherSource, a: &Args) -> Resul
         ProgressStyle::with_template("teacher {bar:30} {pos}/{len} images  {elapsed}").expect("valid template"),
     );
     let cache = a.teacher.cache_dir();
-    let r = session.attach_teacher(src, a.teacher.feature_dims, cache.as_deref(), &|i, _| {
+    let r = session.attach_teacher(src, a.teacher.feature_dims, cache.as_deref(), &|i, total| {
+        bar.set_length(total as u64);
         bar.set_position(i as u64)
     })?;
     bar.finish_and_clear();
+    let of = if r.images < n {
+        format!(" on {} of the {n} training views", r.images)
+    } else {
+        String::new()
+    };
     eprintln!(
-        "teacher {}: {} → {} channels by PCA ({:.1} % of the variance), {}×{} maps, {:.1} s ({:.2} s per image){}",
+        "teacher {}{of}: {} → {} channels by PCA ({:.1} % of the variance), {}×{} maps, {:.1} s ({:.2} s per image){}",
         r.source,
         if r.from_cache {
             "cached".to_string()
@@ -320,7 +326,7 @@ fn attach_teacher(session: &mut Session, src: &TeacherSource, a: &Args) -> Resul
         r.map_size[0],
         r.map_size[1],
         r.seconds,
-        r.seconds / n.max(1) as f64,
+        r.seconds / r.images.max(1) as f64,
         r.cached.map_or(String::new(), |c| format!(" (cache {})", c.display()))
     );
     Ok(())

@@ -235,6 +235,9 @@ pub struct RenderOptions {
     pub colour: bool,
     /// Rays stop when the transmittance drops below this.
     pub min_transmittance: f32,
+    /// Samples whose weight (transmittance × opacity) is at or below this
+    /// are not shaded: their colour and features count as zero.
+    pub min_weight: f32,
     pub probes: Vec<Probe>,
 }
 
@@ -247,6 +250,7 @@ impl Default for RenderOptions {
             layer_opacity: false,
             colour: true,
             min_transmittance: 1e-4,
+            min_weight: 0.0,
             probes: vec![],
         }
     }
@@ -428,7 +432,7 @@ impl<'a> Tracer<'a> {
                 }
                 let alpha = 1.0 - (-sum * dt).exp();
                 let w = t_acc * alpha;
-                if w > 0.0 {
+                if w > self.opts.min_weight {
                     color += w * self.shade(ray, t, sum, layer_opacity, w, slot.features);
                     depth += w * t;
                 }

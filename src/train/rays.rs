@@ -155,7 +155,13 @@ impl RaySet {
     /// image, so they come in runs along rows: stored as runs, the subset
     /// takes a few bytes per image row instead of 4 per ray.
     pub fn hitting(&self, bounds: &Aabb) -> RaySubset {
-        let per_view: Vec<Vec<[u32; 2]>> = (0..self.cameras.len())
+        self.hitting_views(bounds, |_| true)
+    }
+
+    /// [`RaySet::hitting`] over the views `keep` accepts only.
+    pub fn hitting_views(&self, bounds: &Aabb, keep: impl Fn(usize) -> bool + Sync) -> RaySubset {
+        let views: Vec<usize> = (0..self.cameras.len()).filter(|&v| keep(v)).collect();
+        let per_view: Vec<Vec<[u32; 2]>> = views
             .into_par_iter()
             .map(|v| {
                 // The view's pixels in index order, rays straight from its camera.

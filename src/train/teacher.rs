@@ -50,7 +50,8 @@ impl FeatureMap {
     }
 }
 
-/// Maps of every training view, all with the same channel count.
+/// Maps of the training views (every view, or the subset in `views`), all
+/// with the same channel count.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FeatureMaps {
     pub channels: usize,
@@ -58,6 +59,9 @@ pub struct FeatureMaps {
     /// Per map, the mean image colour under each cell (row-major): the
     /// guide of [`FeatureMaps::sample_guided`]; empty when not attached.
     pub guides: Vec<Vec<[f32; 3]>>,
+    /// The training views the maps are of, ascending (`maps[k]` is of
+    /// view `views[k]`); empty: one map per view, in order.
+    pub views: Vec<usize>,
 }
 
 /// Joint bilateral upsampling window: cells within this many of the
@@ -85,13 +89,35 @@ impl FeatureMaps {
             channels,
             maps,
             guides: vec![],
+            views: vec![],
         })
     }
 
-    /// Bilinear sample of view `view`'s map at the centre of `pixel`
-    /// (clamped at the borders) into `out` (len = channels).
-    pub fn sample(&self, view: usize, pixel: [u16; 2], out: &mut [f32]) {
-        let m = &self.maps[view];
+    /// The same maps, said to be of the training views `views` (ascending,
+    /// one per map) rather than of every view in order.
+    pub fn of_views(self, views: Vec<usize>) -> Result<Self> {
+        ensure!(
+            views.len() == self.maps.len() && views.windows(2).all(|w| w[0] < w[1]),
+            "{} feature maps for the views {views:?} (one map per view, views ascending)",
+            self.maps.len()
+        );
+        Ok(FeatureMaps { views, ..self })
+    }
+
+    /// The index of training view `view`'s map, if the teacher saw it.
+    #[inline]
+    pub fn map_of(&self, view: usize) -> Option<usize> {
+        if self.views.is_empty() {
+            (view < self.maps.len()).then_some(view)
+        } else {
+            self.views.binary_search(&view).ok()
+        }
+    }
+
+    /// Bilinear sample of map `map` at the centre of `pixel` (clamped at
+    /// the borders) into `out` (len = channels).
+    pub fn sample(&self, map: usize, pixel: [u16; 2], out: &mut [f32]) {
+        let m = &self.maps[map];
         let u = (pixel[0] as f32 + 0.5) / m.image_width as f32 * m.width as f32 - 0.5;
         let v = (pixel[1] as f32 + 0.5) / m.image_height as f32 * m.height as f32 - 0.5;
         out[..self.channels].fill(0.0);
@@ -117,7 +143,7 @@ impl FeatureMaps {
         Ok(())
     }
 
-    /// The map of view `view` at `pixel`, upsampled with the image as guide
+    /// Map `map` at `pixel`, upsampled with the image as guide
     /// (joint bilateral upsampling, Kopf et al. 2007): the cells around the
     /// pixel are weighted by their distance (σ one cell) and by how close
     /// their mean colour is to the pixel's `colour` (σ `sigma_colour`).
@@ -126,11 +152,11 @@ impl FeatureMaps {
     /// the colour term takes a pixel's feature from the cells that look
     /// like it. Falls back to [`FeatureMaps::sample`] without guides, and
     /// where no cell nearby has a colour like the pixel's.
-    pub fn sample_guided(&self, view: usize, pixel: [u16; 2], colour: [f32; 3], sigma_colour: f32, out: &mut [f32]) {
-        let (Some(guide), true) = (self.guides.get(view), sigma_colour > 0.0) else {
-            return self.sample(view, pixel, out);
+    pub fn sample_guided(&self, map: usize, pixel: [u16; 2], colour: [f32; 3], sigma_colour: f32, out: &mut [f32]) {
+        let (Some(guide), true) = (self.guides.get(map), sigma_colour > 0.0) else {
+            return self.sample(map, pixel, out);
         };
-        let m = &self.maps[view];
+        let m = &self.maps[map];
         let c = self.channels;
         let u = (pixel[0] as f32 + 0.5) / m.image_width as f32 * m.width as f32 - 0.5;
         let v = (pixel[1] as f32 + 0.5) / m.image_height as f32 * m.height as f32 - 0.5;
@@ -157,7 +183,7 @@ impl FeatureMaps {
             }
         }
         if total <= 1e-4 * spatial {
-            return self.sample(view, pixel, out);
+            return self.sample(map, pixel, out);
         }
         out[..c].iter_mut().for_each(|o| *o /= total);
     }
@@ -320,6 +346,8 @@ pub struct TeacherReport {
     /// Variance explained by the kept PCA components.
     pub explained: f32,
     pub map_size: [usize; 2],
+    /// Images the teacher ran on (or whose maps came from the cache).
+    pub images: usize,
     pub cached: Option<PathBuf>,
     pub from_cache: bool,
     pub seconds: f64,
@@ -347,6 +375,7 @@ pub fn teacher_features(
         channels: dims,
         explained: 1.0,
         map_size: [0, 0],
+        images: images.len(),
         cached: cache_file.clone(),
         from_cache: false,
         seconds: 0.0,

@@ -474,7 +474,12 @@ impl Trainer {
                 t: 0,
             };
         }
-        let useful = self.rays.hitting(&self.model.geom.bounds);
+        self.refresh_useful();
+    }
+
+    /// Recomputes the rays batches are drawn from ([`Trainer::useful_rays`]).
+    fn refresh_useful(&mut self) {
+        let useful = self.useful_rays();
         // The miner's cells are positions in `useful`: they keep their
         // errors while the rays stay the same (most stage changes).
         if useful != self.useful || self.miner.is_none() {
@@ -482,6 +487,23 @@ impl Trainer {
                 .then(|| RayMiner::new(useful.len(), self.config.mining, self.config.mining_alpha));
         }
         self.useful = useful;
+    }
+
+    /// Distils from `maps` from now on.
+    pub fn set_teacher(&mut self, maps: FeatureMaps) {
+        self.teacher = Some(maps);
+        self.refresh_useful();
+    }
+
+    /// The rays batches are drawn from: those that meet the box; when only
+    /// features are trained (a frozen field), only those of views the
+    /// teacher saw.
+    fn useful_rays(&self) -> super::rays::RaySubset {
+        let bounds = &self.model.geom.bounds;
+        match self.teacher.as_ref().filter(|t| !t.views.is_empty() && self.radiance_frozen()) {
+            Some(t) => self.rays.hitting_views(bounds, |v| t.map_of(v).is_some()),
+            None => self.rays.hitting(bounds),
+        }
     }
 
     /// Drops the distilled features and rewinds to the start of the feature
@@ -729,9 +751,12 @@ impl Trainer {
                         g *= w[ci * chunk + j];
                         errors.push(d.length_squared() / 3.0);
                     }
-                    if let (true, Some(t)) = (fc > 0, teacher) {
-                        let colour = photo.to_array();
-                        t.sample_guided(rays.view(ri), rays.pixel(ri), colour, guide, &mut target);
+                    // Views the teacher did not see distil nothing (their
+                    // rays are left out of frozen-field batches).
+                    let map = teacher.filter(|_| fc > 0).and_then(|t| Some((t, t.map_of(rays.view(ri))?)));
+                    h.fill(0.0);
+                    if let Some((t, m)) = map {
+                        t.sample_guided(m, rays.pixel(ri), photo.to_array(), guide, &mut target);
                         for c in 0..fc {
                             let e = s.features[c] - target[c];
                             fe += (e * e) as f64;
@@ -1118,6 +1143,55 @@ mod tests {
     /// `lr_last_stage` scales the density step on the last stage, and only
     /// there: Adam's first step moves each touched value by about its
     /// learning rate, so a factor 2 moves every value exactly twice as far.
+    #[test]
+    fn a_frozen_field_distils_only_from_the_views_the_teacher_saw() {
+        use crate::train::teacher::{FeatureMap, FeatureMaps};
+        let views: Vec<_> = (0..3)
+            .map(|k| tiny_view((0..144).map(|i| ((i + k) % 5) as f32 / 5.0).collect(), None))
+            .collect();
+        let pairs: Vec<_> = views.iter().map(|(c, img)| (*c, img)).collect();
+        let rays = RaySet::build(&pairs).unwrap();
+        let config = TrainConfig {
+            iters: 4,
+            feature_iters: 4,
+            feature_res: 8,
+            batch: 64,
+            res: 8,
+            coarse_res: 8,
+            stages: 1,
+            freeze_geometry: true,
+            random_background: false,
+            ..Default::default()
+        };
+        let bounds = Aabb::new(Vec3::splat(-1.0), Vec3::splat(1.0));
+        let mut t = Trainer::new(config, rays.clone(), bounds).unwrap();
+        // Maps of views 0 and 2 only: a constant feature each.
+        let map = |v: f32| FeatureMap {
+            width: 2,
+            height: 2,
+            image_width: 8,
+            image_height: 6,
+            data: vec![v, -v, v, -v, v, -v, v, -v],
+        };
+        let maps = FeatureMaps::new(2, vec![map(0.5), map(-0.5)]).unwrap();
+        assert!(maps.clone().of_views(vec![2, 0]).is_err(), "views must ascend");
+        assert!(maps.clone().of_views(vec![0]).is_err(), "one view per map");
+        let maps = maps.of_views(vec![0, 2]).unwrap();
+        assert_eq!((maps.map_of(0), maps.map_of(1), maps.map_of(2)), (Some(0), None, Some(1)));
+        t.set_teacher(maps);
+        let all = rays.hitting(&t.model.geom.bounds).len();
+        assert_eq!(t.useful.len(), all, "radiance trains on every view");
+        while !t.in_feature_phase() {
+            t.step().unwrap();
+        }
+        t.step().unwrap();
+        let seen: Vec<usize> = (0..t.useful.len()).map(|k| rays.view(t.useful.get(k) as usize)).collect();
+        assert!(seen.iter().all(|&v| v != 1), "view 1 has no map");
+        assert!(seen.contains(&0) && seen.contains(&2));
+        assert_eq!(seen.len(), all * 2 / 3, "every ray of the two views that meets the box");
+        assert!(t.history.last().unwrap().feature_loss > 0.0);
+    }
+
     #[test]
     fn the_last_stage_takes_its_own_learning_rate() {
         let (cam, image) = tiny_view((0..144).map(|i| (i % 7) as f32 / 7.0).collect(), None);
