@@ -418,7 +418,11 @@ fn samples_at_or_below_the_weight_floor_add_no_colour() {
     assert!((exact.color[0] - light.color[0]).abs().max_element() < 1e-4);
     // Above every weight: nothing is shaded, only the background shows.
     let t = 1.0 - exact.opacity[0];
-    assert!((above.color[0] - Vec3::splat(t)).abs().max_element() < 1e-6, "{}", above.color[0]);
+    assert!(
+        (above.color[0] - Vec3::splat(t)).abs().max_element() < 1e-6,
+        "{}",
+        above.color[0]
+    );
     assert_eq!(above.depth[0], 0.0);
     assert!((exact.color[0] - above.color[0]).abs().max_element() > 0.05);
 }

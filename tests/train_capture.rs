@@ -97,7 +97,7 @@ fn training_and_distillation_recover_a_rendered_demo_scene() {
         "feature moments survive the resume"
     );
     assert!(again.opt.density.m.is_empty());
-    again.teacher = t.teacher.clone();
+    again.set_teacher(t.teacher().unwrap().clone());
     again.restart_features(None).unwrap();
     again.step().unwrap();
     assert!(again.opt.density.m.is_empty() && !again.opt.features.m.is_empty());

@@ -397,7 +397,7 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
         &|_, _| (),
     )?;
     let teacher_seconds = t0.elapsed().as_secs_f64();
-    let maps = session.trainer.teacher.as_ref().expect("teacher just attached");
+    let maps = session.trainer.teacher().expect("teacher just attached");
     let mut crc = crc32fast::Hasher::new();
     for m in &maps.maps {
         crc.update(bytemuck::cast_slice(&m.data));
@@ -410,7 +410,7 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
             field.up = field.up.or(session.dataset.cameras.up());
             return Ok(Trained {
                 field: Arc::new(field),
-                maps: session.trainer.teacher.take().expect("teacher just attached"),
+                maps: session.trainer.take_teacher().expect("teacher just attached"),
                 meta,
                 from_cache: true,
                 teacher: report.source,
@@ -434,7 +434,9 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
         if resumed.trainer.iter == config.iters && resumed.trainer.config.iters == config.iters {
             eprintln!("  radiance phase from {}", ckpt.display());
             resumed.trainer.config = config;
-            resumed.trainer.teacher = session.trainer.teacher.take();
+            if let Some(maps) = session.trainer.take_teacher() {
+                resumed.trainer.set_teacher(maps);
+            }
             session = resumed;
         }
     }
@@ -480,8 +482,7 @@ pub fn train_field(capture_dir: &Path, capture_key: &str, cfg: &QualityConfig, f
         field,
         maps: session
             .trainer
-            .teacher
-            .take()
+            .take_teacher()
             .expect("teacher attached for distillation"),
         meta,
         from_cache: false,

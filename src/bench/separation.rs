@@ -101,14 +101,16 @@ pub fn separation(labels: &[u8], blocks: &[&[f32]], channels: usize) -> Vec<Sepa
         .collect()
 }
 
-/// The true label of every map cell of `maps` (one map per camera of
-/// `cameras`, in order): that of the first surface `truth` shows at the
-/// cell's centre pixel ([`demo::strokes::surface_at`]), 0 where none.
+/// The true label of every map cell of `maps` (of the training views
+/// `cameras`, [`FeatureMaps::view_of`]): that of the first surface `truth`
+/// shows at the cell's centre pixel ([`demo::strokes::surface_at`]), 0
+/// where none.
 pub fn cell_labels(maps: &FeatureMaps, cameras: &[Camera], truth: &DensityGrid, labels: &Labels) -> Vec<u8> {
     maps.maps
         .par_iter()
-        .zip(cameras)
-        .flat_map_iter(|(m, camera)| {
+        .enumerate()
+        .flat_map_iter(|(k, m)| {
+            let camera = &cameras[maps.view_of(k)];
             let (sx, sy) = (
                 m.image_width as f32 / m.width as f32,
                 m.image_height as f32 / m.height as f32,

@@ -148,7 +148,7 @@ pub fn demo_trainer(capture: &DemoCapture, config: TrainConfig) -> Result<Traine
     let views: Vec<(Camera, &Image)> = capture.cameras.iter().copied().zip(&capture.images).collect();
     let rays = RaySet::build(&views)?;
     let mut t = Trainer::new(config, rays, crate::demo::bounds())?;
-    t.teacher = Some(capture.teacher.clone());
+    t.set_teacher(capture.teacher.clone());
     Ok(t)
 }
 

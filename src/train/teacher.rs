@@ -104,6 +104,12 @@ impl FeatureMaps {
         Ok(FeatureMaps { views, ..self })
     }
 
+    /// The training view map `k` is of.
+    #[inline]
+    pub fn view_of(&self, k: usize) -> usize {
+        self.views.get(k).copied().unwrap_or(k)
+    }
+
     /// The index of training view `view`'s map, if the teacher saw it.
     #[inline]
     pub fn map_of(&self, view: usize) -> Option<usize> {

@@ -392,8 +392,10 @@ pub struct Trainer {
     pub iter: usize,
     pub history: Vec<StepStats>,
     pub rays: RaySet,
-    /// Teacher features of the training views (distillation).
-    pub teacher: Option<FeatureMaps>,
+    /// Teacher features of the training views (distillation); set with
+    /// [`Trainer::set_teacher`], which also decides which rays batches
+    /// draw.
+    teacher: Option<FeatureMaps>,
     /// What the schedule did (stage changes, pruning), for people to read.
     pub notes: Vec<String>,
     /// The step's gradients, and each rayon task's records of them.
@@ -495,12 +497,28 @@ impl Trainer {
         self.refresh_useful();
     }
 
+    /// The teacher's maps distilled from, if any.
+    pub fn teacher(&self) -> Option<&FeatureMaps> {
+        self.teacher.as_ref()
+    }
+
+    /// Takes the teacher's maps out (batches then draw from every view).
+    pub fn take_teacher(&mut self) -> Option<FeatureMaps> {
+        let maps = self.teacher.take();
+        self.refresh_useful();
+        maps
+    }
+
     /// The rays batches are drawn from: those that meet the box; when only
     /// features are trained (a frozen field), only those of views the
     /// teacher saw.
     fn useful_rays(&self) -> super::rays::RaySubset {
         let bounds = &self.model.geom.bounds;
-        match self.teacher.as_ref().filter(|t| !t.views.is_empty() && self.radiance_frozen()) {
+        match self
+            .teacher
+            .as_ref()
+            .filter(|t| !t.views.is_empty() && self.radiance_frozen())
+        {
             Some(t) => self.rays.hitting_views(bounds, |v| t.map_of(v).is_some()),
             None => self.rays.hitting(bounds),
         }
@@ -753,7 +771,9 @@ impl Trainer {
                     }
                     // Views the teacher did not see distil nothing (their
                     // rays are left out of frozen-field batches).
-                    let map = teacher.filter(|_| fc > 0).and_then(|t| Some((t, t.map_of(rays.view(ri))?)));
+                    let map = teacher
+                        .filter(|_| fc > 0)
+                        .and_then(|t| Some((t, t.map_of(rays.view(ri))?)));
                     h.fill(0.0);
                     if let Some((t, m)) = map {
                         t.sample_guided(m, rays.pixel(ri), photo.to_array(), guide, &mut target);
@@ -1177,7 +1197,10 @@ mod tests {
         assert!(maps.clone().of_views(vec![2, 0]).is_err(), "views must ascend");
         assert!(maps.clone().of_views(vec![0]).is_err(), "one view per map");
         let maps = maps.of_views(vec![0, 2]).unwrap();
-        assert_eq!((maps.map_of(0), maps.map_of(1), maps.map_of(2)), (Some(0), None, Some(1)));
+        assert_eq!(
+            (maps.map_of(0), maps.map_of(1), maps.map_of(2)),
+            (Some(0), None, Some(1))
+        );
         t.set_teacher(maps);
         let all = rays.hitting(&t.model.geom.bounds).len();
         assert_eq!(t.useful.len(), all, "radiance trains on every view");
@@ -1185,7 +1208,9 @@ mod tests {
             t.step().unwrap();
         }
         t.step().unwrap();
-        let seen: Vec<usize> = (0..t.useful.len()).map(|k| rays.view(t.useful.get(k) as usize)).collect();
+        let seen: Vec<usize> = (0..t.useful.len())
+            .map(|k| rays.view(t.useful.get(k) as usize))
+            .collect();
         assert!(seen.iter().all(|&v| v != 1), "view 1 has no map");
         assert!(seen.contains(&0) && seen.contains(&2));
         assert_eq!(seen.len(), all * 2 / 3, "every ray of the two views that meets the box");
