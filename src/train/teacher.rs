@@ -296,6 +296,22 @@ impl TeacherSource {
         }
     }
 
+    /// Input pixels the teacher runs on for one `width × height` image (all
+    /// its shifted runs and crops; a crop is an input of the same size),
+    /// which is what its time goes with; 0 for precomputed maps.
+    pub fn input_pixels(&self, width: u32, height: u32) -> u64 {
+        match self {
+            TeacherSource::Onnx {
+                size, shifts, tiles, ..
+            } => {
+                let [w, h] = super::vit::input_dims(*size, width, height, *shifts);
+                let runs = (*shifts as u64).pow(2) * (*tiles as u64).pow(2);
+                w as u64 * h as u64 * runs
+            }
+            TeacherSource::Precomputed(_) => 0,
+        }
+    }
+
     fn describe(&self) -> String {
         match self {
             TeacherSource::Onnx {
