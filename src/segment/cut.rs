@@ -444,8 +444,8 @@ const BACKGROUND_ROWS: usize = 8_000;
 /// K-means++ draws a feature model fitted afresh keeps the best of
 /// ([`kmeans_best_of`]; later rounds start from the last round's centres).
 /// With the stroke's and the mask's own draws ([`super::STROKE_DRAWS`]),
-/// fern NVOS over seeds 0–4 went from 0.815–0.833 (mean 0.825) to
-/// 0.827–0.839 (0.832).
+/// fern NVOS over seeds 0–4 went from 0.815–0.833 (mean 0.825, with the
+/// colour models' draws alone) to 0.827–0.839 (0.832).
 const FEATURE_DRAWS: usize = 4;
 
 /// K-means of `points` (`dim` wide), stopped by [`FIT_STOP`], from
