@@ -62,9 +62,9 @@ pub fn default_teacher(shifts: u32, tiles: u32) -> Result<Option<TeacherSource>>
 /// has 100 views, and the ViT at 672×672 takes 2.1 s for each: on 50 of
 /// them 117 s instead of 207, and one stroke on the same field scores
 /// alpha IoU 0.9953 (min 0.9835) against 0.996 (0.990) with all 100. The
-/// realistic benchmark's 80 views of 200×150 (448×336 inputs, 0.3 s
-/// each) all fit: on 50 of them the shelf's jar took the excavator beside
-/// it (3D IoU 0.914 → 0.279).
+/// realistic benchmark's 80 views of 200×150 (448×336 inputs, a third
+/// of the pixels) all fit: on 50 of them the shelf's jar took the
+/// excavator beside it (3D IoU 0.914 → 0.279).
 pub const TEACHER_PIXEL_BUDGET: u64 = 50 * 672 * 672;
 
 /// The fewest views the teacher runs on, however large its inputs.
