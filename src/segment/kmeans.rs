@@ -245,7 +245,7 @@ pub fn kmeans(points: &[f32], dim: usize, k: usize, seed: u64, max_iters: usize)
 
 /// [`kmeans`] with a stopping rule.
 pub fn kmeans_until(points: &[f32], dim: usize, k: usize, seed: u64, stop: Stop) -> Centroids {
-    let n = if dim == 0 { 0 } else { points.len() / dim };
+    let n = points.len().checked_div(dim).unwrap_or(0);
     if n == 0 || k == 0 {
         return Centroids { dim, data: vec![] };
     }
@@ -286,7 +286,7 @@ pub fn kmeans_until(points: &[f32], dim: usize, k: usize, seed: u64, stop: Stop)
 /// stroke instead of 42 %, which sent its cut down the path for floods
 /// into other things (alpha IoU 0.605 instead of 0.996).
 pub fn kmeans_best_of(points: &[f32], dim: usize, k: usize, seed: u64, stop: Stop, draws: usize) -> Centroids {
-    let n = if dim == 0 { 0 } else { points.len() / dim };
+    let n = points.len().checked_div(dim).unwrap_or(0);
     if draws <= 1 || n == 0 {
         return kmeans_until(points, dim, k, seed, stop);
     }
