@@ -293,7 +293,12 @@ pub fn kmeans_best_of(points: &[f32], dim: usize, k: usize, seed: u64, stop: Sto
     // The draws compete on a strided sample; the winner is then fitted to
     // every point from where it stands.
     let stride = n.div_ceil(DRAW_ROWS).max(1);
-    let sample: Vec<f32> = points.chunks_exact(dim).step_by(stride).flatten().copied().collect();
+    let sample: std::borrow::Cow<[f32]> = match stride {
+        1 => points.into(),
+        _ => (points.chunks_exact(dim).step_by(stride).flatten().copied())
+            .collect::<Vec<f32>>()
+            .into(),
+    };
     let mut best = kmeans_until(&sample, dim, k, seed, stop);
     let mut least = inertia(&sample, &best);
     for d in 1..draws as u64 {

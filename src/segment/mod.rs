@@ -169,21 +169,6 @@ impl SegmentParams {
         }
     }
 
-    /// These parameters for a copy of the grid `factor` times coarser
-    /// across. The graph cut's unary terms count voxels and its boundary
-    /// counts faces between them: on the coarse copy a voxel stands for
-    /// `factor³` fine ones but a face for only `factor²`, so the same λ
-    /// weighs the boundary `factor` times more than on the fine grid, and
-    /// λ / `factor` keeps the fine grid's balance. Fern NVOS (3× copy):
-    /// 0.836 → 0.840; lego's stroke keeps its alpha IoU (0.9963 and
-    /// 0.9962 on two fields); the realistic benchmark, which segments on
-    /// the fields' own grids, is untouched.
-    pub fn on_coarser_grid(&self, factor: usize) -> SegmentParams {
-        let mut q = *self;
-        q.cut.lambda /= factor.max(1) as f32;
-        q
-    }
-
     /// Whether strokes are refined by the graph cut: the stable rule with
     /// growth and at least one cut round.
     pub fn cuts(&self) -> bool {
@@ -958,9 +943,7 @@ impl MaskBuilder {
         if level.1 != self.mask {
             level.0.mask = crate::field::coarse::downsample(&self.mask, coarse.factor);
         }
-        let mut t = level
-            .0
-            .stroke_on(coarse, fine, look, polarity, &p.on_coarser_grid(coarse.factor))?;
+        let mut t = level.0.stroke_on(coarse, fine, look, polarity, p)?;
         let t0 = Instant::now();
         let floor = p.sigma_floor(fine.voxel_size);
         self.mask = crate::field::coarse::upsample(fine, &level.0.mask, coarse.factor, floor);
@@ -1458,18 +1441,6 @@ mod tests {
         let many: Vec<Vec3> = (0..1_000_000).map(|i| if i % 4 == 1 { red } else { grey }).collect();
         let share = scene_share(&palette.table(LIKE_STROKE), &many);
         assert!((share - 0.25).abs() < 0.02, "sampled share {share}");
-    }
-
-    /// Known answers: on a 3× coarser copy the cut's boundary weighs a
-    /// third, and nothing else changes; factor 1 (and 0) leave it alone.
-    #[test]
-    fn a_coarser_grid_weighs_the_cut_boundary_by_its_factor() {
-        let p = SegmentParams::default();
-        let q = p.on_coarser_grid(3);
-        assert!((q.cut.lambda - p.cut.lambda / 3.0).abs() < 1e-7);
-        assert_eq!(SegmentParams { cut: p.cut, ..q }, p);
-        assert_eq!(p.on_coarser_grid(1), p);
-        assert_eq!(p.on_coarser_grid(0), p);
     }
 
     /// Known answers: unlike-coloured voxels at twice the others' mean
