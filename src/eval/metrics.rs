@@ -26,6 +26,13 @@ impl Confusion {
         }
         c
     }
+    /// [`Confusion::of`] over the pixels `ignore` leaves out.
+    pub fn outside(pred: &[bool], gt: &[bool], ignore: &[bool]) -> Self {
+        let keep = |(i, _): &(usize, &bool)| !ignore[*i];
+        let pred: Vec<bool> = pred.iter().enumerate().filter(keep).map(|(_, &p)| p).collect();
+        let gt: Vec<bool> = gt.iter().enumerate().filter(keep).map(|(_, &g)| g).collect();
+        Confusion::of(&pred, &gt)
+    }
     /// TP/(TP+FP+FN); 1 when both masks are empty.
     pub fn iou(&self) -> f64 {
         let d = self.tp + self.fp + self.fn_;
@@ -43,6 +50,43 @@ impl Confusion {
             (self.tp + self.tn) as f64 / n as f64
         }
     }
+}
+
+/// Pixels within `r` pixels of the edge of mask `gt` (`w` × `h`,
+/// row-major): their (2r+1)² square, clipped to the image, holds both
+/// labels. Scores that leave them out ([`Confusion::outside`]) tell a wrong
+/// outline from wrong parts; the outline is also where a hand-drawn or
+/// thresholded mask is least certain.
+pub fn edge_band(gt: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
+    assert_eq!(gt.len(), w * h, "mask of {w}×{h}");
+    // Trues per clipped window: along rows, then along columns.
+    let window = |i: usize, n: usize| i.saturating_sub(r)..(i + r + 1).min(n);
+    let mut rows = vec![0u32; w * h];
+    for y in 0..h {
+        let line = &gt[y * w..(y + 1) * w];
+        let mut prefix = vec![0u32; w + 1];
+        for x in 0..w {
+            prefix[x + 1] = prefix[x] + line[x] as u32;
+        }
+        for x in 0..w {
+            let span = window(x, w);
+            rows[y * w + x] = prefix[span.end] - prefix[span.start];
+        }
+    }
+    let mut band = vec![false; w * h];
+    for x in 0..w {
+        let mut prefix = vec![0u32; h + 1];
+        for y in 0..h {
+            prefix[y + 1] = prefix[y] + rows[y * w + x];
+        }
+        let across = window(x, w).len() as u32;
+        for y in 0..h {
+            let span = window(y, h);
+            let trues = prefix[span.end] - prefix[span.start];
+            band[y * w + x] = trues > 0 && trues < across * span.len() as u32;
+        }
+    }
+    band
 }
 
 pub fn iou(pred: &[bool], gt: &[bool]) -> f64 {
@@ -189,6 +233,40 @@ fn gauss(i: isize, sigma: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_edge_band_holds_the_pixels_whose_square_sees_both_labels() {
+        // A 4×4 square at x, y in 3..7 of a 10×10 mask.
+        let (w, h) = (10, 10);
+        let gt: Vec<bool> = (0..w * h)
+            .map(|i| (3..7).contains(&(i % w)) && (3..7).contains(&(i / w)))
+            .collect();
+        assert!(edge_band(&gt, w, h, 0).iter().all(|&b| !b), "no band at radius 0");
+        let band = edge_band(&gt, w, h, 1);
+        // Squares that see a true pixel: 2..=7 each way (36); of those,
+        // squares of trues only: 4..=5 each way (4).
+        assert_eq!(band.iter().filter(|&&b| b).count(), 32);
+        assert!(band[2 * w + 2] && band[3 * w + 3] && !band[4 * w + 4] && !band[w + 1]);
+        let wide = edge_band(&gt, w, h, 2);
+        assert_eq!(
+            wide.iter().filter(|&&b| b).count(),
+            64,
+            "1..=8 each way, no square of trues only"
+        );
+        // At the image's border the window is clipped, not padded.
+        let all = vec![true; w * h];
+        assert!(edge_band(&all, w, h, 3).iter().all(|&b| !b));
+
+        // The mask moved one pixel right: every error lies on the outline.
+        let moved: Vec<bool> = (0..w * h).map(|i| i % w > 0 && gt[i - 1]).collect();
+        assert!((Confusion::of(&moved, &gt).iou() - 12.0 / 20.0).abs() < 1e-12);
+        assert_eq!(Confusion::outside(&moved, &gt, &band).iou(), 1.0);
+        // A wrong part far from the outline still counts.
+        let mut blob = moved.clone();
+        blob[9 * w + 9] = true;
+        let c = Confusion::outside(&blob, &gt, &band);
+        assert_eq!((c.tp, c.fp, c.fn_), (4, 1, 0));
+    }
 
     #[test]
     fn known_answers() {

@@ -10,7 +10,7 @@
 //! NVOS layout: `reference_image/<scene>/<img>`, `scribbles/<scene>/{pos,neg}_*.png`
 //! (any non-zero pixel is a stroke), `masks/<scene>/<target>_mask.png`.
 
-use super::metrics::{average_precision, iou3d, Confusion};
+use super::metrics::{average_precision, edge_band, iou3d, Confusion};
 use crate::camera::{Camera, CameraSet};
 use crate::demo::{DemoScene, STROKE_RADIUS};
 use crate::error::{Error, Result};
@@ -234,6 +234,11 @@ pub struct NvosReport {
     /// it shows (0.1 is `iou`; 0.5: the object is most of the pixel): how
     /// much of the error is a faint halo rather than wrong voxels.
     pub iou_by_share: Vec<(f32, f64)>,
+    /// IoU over the pixels farther than r pixels from the ground truth's
+    /// edge ([`edge_band`]), for r = 1 and 2: how much of the error is the
+    /// outline (a blurred field's and a hand-drawn or thresholded mask's
+    /// least certain pixels) rather than whole parts.
+    pub iou_beyond_edge: Vec<(usize, f64)>,
     pub voxels: usize,
     /// The predicted mask on the target view (row-major, mask size), for
     /// `isrf eval --mask-out`.
@@ -369,6 +374,13 @@ pub fn evaluate_nvos(
             .map(|&s| {
                 let p: Vec<bool> = f.out.probe_opacity.iter().map(|&v| v > s).collect();
                 (s, Confusion::of(&p, &gt).iou())
+            })
+            .collect(),
+        iou_beyond_edge: [1, 2]
+            .iter()
+            .map(|&r| {
+                let band = edge_band(&gt, gt_img.width() as usize, gt_img.height() as usize, r);
+                (r, Confusion::outside(&pred, &gt, &band).iou())
             })
             .collect(),
         voxels: mask.count(),
