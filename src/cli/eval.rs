@@ -45,6 +45,10 @@ pub struct Args {
     /// selected) to this PNG.
     #[arg(long, requires = "nvos")]
     pub mask_out: Option<PathBuf>,
+    /// With --nvos: write where the mask goes wrong to this PNG: the field's
+    /// render of the target view, dimmed, false pixels red, missed ones blue.
+    #[arg(long, requires = "nvos")]
+    pub errors_out: Option<PathBuf>,
     /// With --nvos: write the selection (a 3D bitmap of `--field`, as
     /// `isrf segment` writes) to this file, to render or edit it.
     #[arg(long, requires = "nvos")]
@@ -79,6 +83,10 @@ pub fn run(a: Args) -> Result<()> {
         if let Some(out) = &a.mask_out {
             let v = |&b: &bool| if b { 255u8 } else { 0 };
             let rgb: Vec<u8> = r.predicted.iter().flat_map(|b| [v(b); 3]).collect();
+            isrf::render::save_png(out, r.size[0], r.size[1], &rgb)?;
+        }
+        if let Some(out) = &a.errors_out {
+            let rgb = isrf::eval::protocol::error_overlay(&r.render, &r.predicted, &r.truth);
             isrf::render::save_png(out, r.size[0], r.size[1], &rgb)?;
         }
         if let Some(out) = &a.object_out {

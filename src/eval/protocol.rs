@@ -244,11 +244,40 @@ pub struct NvosReport {
     /// `isrf eval --mask-out`.
     #[serde(skip)]
     pub predicted: Vec<bool>,
+    /// The ground truth and the field's colour on the target view (the
+    /// same pixels), for `isrf eval --errors-out` ([`error_overlay`]).
+    #[serde(skip)]
+    pub truth: Vec<bool>,
+    #[serde(skip)]
+    pub render: Vec<glam::Vec3>,
     #[serde(skip)]
     pub size: [u32; 2],
     /// The selection itself, for `isrf eval --object-out`.
     #[serde(skip)]
     pub mask: Bitmap,
+}
+
+/// An RGB8 picture of where a predicted mask goes wrong: the field's colour
+/// `render` at a third of its brightness, false pixels (`pred` but not
+/// `truth`) red and missed ones blue; right pixels keep the dimmed colour,
+/// selected ones a little brighter, so the outline of the selection shows.
+pub fn error_overlay(render: &[glam::Vec3], pred: &[bool], truth: &[bool]) -> Vec<u8> {
+    let byte = |c: glam::Vec3| {
+        (c.clamp(glam::Vec3::ZERO, glam::Vec3::ONE) * 255.0)
+            .round()
+            .to_array()
+            .map(|v| v as u8)
+    };
+    render
+        .iter()
+        .zip(pred.iter().zip(truth))
+        .flat_map(|(&c, (&p, &t))| match (p, t) {
+            (true, false) => [255, 0, 0],
+            (false, true) => [0, 96, 255],
+            (true, true) => byte(c * 0.6),
+            (false, false) => byte(c * 0.3),
+        })
+        .collect()
 }
 
 fn frame_camera(cams: &CameraSet, name: &str) -> Result<Camera> {
@@ -386,6 +415,8 @@ pub fn evaluate_nvos(
         voxels: mask.count(),
         mask,
         predicted: pred,
+        truth: gt,
+        render: f.out.color,
         size: [gt_img.width(), gt_img.height()],
     })
 }
@@ -445,4 +476,26 @@ pub fn evaluate_alpha(
         accuracy: acc / n,
         iou,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    #[test]
+    fn the_error_overlay_paints_false_pixels_red_and_missed_ones_blue() {
+        let grey = Vec3::splat(0.5);
+        let render = [grey, grey, grey, Vec3::ONE];
+        let pred = [true, false, true, false];
+        let truth = [false, true, true, false];
+        let rgb = error_overlay(&render, &pred, &truth);
+        assert_eq!(
+            rgb,
+            [[255, 0, 0], [0, 96, 255], [77, 77, 77], [77, 77, 77]].concat(),
+            "false, missed, right and selected (0.5 × 0.6), right and not (1 × 0.3)"
+        );
+        // Colours past [0, 1] (a render's background) are clamped, not wrapped.
+        assert_eq!(error_overlay(&[Vec3::splat(9.0)], &[true], &[true]), [153, 153, 153]);
+    }
 }
