@@ -262,16 +262,12 @@ pub struct NvosReport {
 /// `truth`) red and missed ones blue; right pixels keep the dimmed colour,
 /// selected ones a little brighter, so the outline of the selection shows.
 pub fn error_overlay(render: &[glam::Vec3], pred: &[bool], truth: &[bool]) -> Vec<u8> {
-    let byte = |c: glam::Vec3| {
-        (c.clamp(glam::Vec3::ZERO, glam::Vec3::ONE) * 255.0)
-            .round()
-            .to_array()
-            .map(|v| v as u8)
-    };
+    let byte = |c: glam::Vec3| (c * 255.0).round().to_array().map(|v| v as u8);
     render
         .iter()
+        .map(|c| c.clamp(glam::Vec3::ZERO, glam::Vec3::ONE))
         .zip(pred.iter().zip(truth))
-        .flat_map(|(&c, (&p, &t))| match (p, t) {
+        .flat_map(|(c, (&p, &t))| match (p, t) {
             (true, false) => [255, 0, 0],
             (false, true) => [0, 96, 255],
             (true, true) => byte(c * 0.6),
