@@ -62,7 +62,7 @@ pub struct ParamArgs {
     #[arg(long)]
     pub cut_lambda: Option<f32>,
     /// Stable rule: graph-cut rounds refining the region, each re-fitting
-    /// the background model (0: no cut) [default: 2].
+    /// the background model (0: no cut) [default: 1].
     #[arg(long)]
     pub cut_rounds: Option<usize>,
     /// Stable rule: colour's share of the cut's boundary term (0: features
