@@ -132,7 +132,9 @@ macro_rules! ensure_within {
 
 /// Writes `bytes` to `path` atomically: a temporary file in the same
 /// directory, fsync, then rename, so a crash never leaves a half-written file
-/// and never destroys the previous version.
+/// and never destroys the previous version. The file gets the permissions
+/// of the one it replaces, or those of a plain new file (0666 less the
+/// umask on Unix), not the owner-only ones of a temporary file.
 pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
     use std::io::Write;
     let dir = match path.parent() {
@@ -140,7 +142,18 @@ pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
         _ => PathBuf::from("."),
     };
     std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
-    let mut tmp = tempfile::NamedTempFile::new_in(&dir).map_err(|e| Error::io(&dir, e))?;
+    let mut builder = tempfile::Builder::new();
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let mut tmp = builder.tempfile_in(&dir).map_err(|e| Error::io(&dir, e))?;
+    if let Ok(old) = std::fs::metadata(path) {
+        tmp.as_file()
+            .set_permissions(old.permissions())
+            .map_err(|e| Error::io(path, e))?;
+    }
     tmp.write_all(bytes).map_err(|e| Error::io(path, e))?;
     failpoint("write_atomic.before_rename");
     tmp.as_file().sync_all().map_err(|e| Error::io(path, e))?;
@@ -180,5 +193,31 @@ pub fn failpoint(name: &str) {
             libc::kill(libc::getpid(), libc::SIGKILL);
         }
         std::process::abort();
+    }
+}
+
+#[cfg(all(test, unix))]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::PermissionsExt;
+
+    fn mode(p: &std::path::Path) -> u32 {
+        std::fs::metadata(p).unwrap().permissions().mode() & 0o7777
+    }
+
+    #[test]
+    fn atomic_writes_get_a_plain_files_permissions_or_keep_the_old_ones() {
+        let dir = tempfile::tempdir().unwrap();
+        // What a plain create gives here (0666 less this process's umask).
+        let plain = dir.path().join("plain");
+        std::fs::File::create(&plain).unwrap();
+        let new = dir.path().join("new.bin");
+        write_atomic(&new, b"one").unwrap();
+        assert_eq!(mode(&new), mode(&plain), "a new file is created as any file is");
+        // A file replaced keeps its mode, even one the umask would not give.
+        std::fs::set_permissions(&new, std::fs::Permissions::from_mode(0o640)).unwrap();
+        write_atomic(&new, b"two").unwrap();
+        assert_eq!(mode(&new), 0o640);
+        assert_eq!(std::fs::read(&new).unwrap(), b"two");
     }
 }
