@@ -131,12 +131,24 @@ macro_rules! ensure_within {
 }
 
 /// Writes `bytes` to `path` atomically: a temporary file in the same
-/// directory, fsync, then rename, so a crash never leaves a half-written file
-/// and never destroys the previous version. The file gets the permissions
-/// of the one it replaces, or those of a plain new file (0666 less the
-/// umask on Unix), not the owner-only ones of a temporary file.
+/// directory ([`temp_beside`]), fsync, then rename, so a crash never leaves
+/// a half-written file and never destroys the previous version.
 pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
     use std::io::Write;
+    let mut tmp = temp_beside(path)?;
+    tmp.write_all(bytes).map_err(|e| Error::io(path, e))?;
+    failpoint("write_atomic.before_rename");
+    tmp.as_file().sync_all().map_err(|e| Error::io(path, e))?;
+    tmp.persist(path).map_err(|e| Error::io(path, e.error))?;
+    Ok(())
+}
+
+/// A temporary file in `path`'s folder (made if missing), to write `path`
+/// through and rename over it. It gets the permissions of the file it will
+/// replace, or those of a plain new file (0666 less the umask on Unix), not
+/// the owner-only ones temporary files are made with: what isrf writes is
+/// the user's output, for others to read too.
+pub fn temp_beside(path: &std::path::Path) -> Result<tempfile::NamedTempFile> {
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
@@ -148,17 +160,13 @@ pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
         use std::os::unix::fs::PermissionsExt;
         builder.permissions(std::fs::Permissions::from_mode(0o666));
     }
-    let mut tmp = builder.tempfile_in(&dir).map_err(|e| Error::io(&dir, e))?;
+    let tmp = builder.tempfile_in(&dir).map_err(|e| Error::io(&dir, e))?;
     if let Ok(old) = std::fs::metadata(path) {
         tmp.as_file()
             .set_permissions(old.permissions())
             .map_err(|e| Error::io(path, e))?;
     }
-    tmp.write_all(bytes).map_err(|e| Error::io(path, e))?;
-    failpoint("write_atomic.before_rename");
-    tmp.as_file().sync_all().map_err(|e| Error::io(path, e))?;
-    tmp.persist(path).map_err(|e| Error::io(path, e.error))?;
-    Ok(())
+    Ok(tmp)
 }
 
 /// Runs `f`, turning a panic inside it into an error naming `what`, so that
@@ -219,5 +227,19 @@ mod tests {
         write_atomic(&new, b"two").unwrap();
         assert_eq!(mode(&new), 0o640);
         assert_eq!(std::fs::read(&new).unwrap(), b"two");
+
+        // Fields and checkpoints stream through their own writer, with the
+        // same temporary file.
+        let tensors = dir.path().join("t.safetensors");
+        let data = [1u8, 2, 3];
+        let write = || {
+            let t = [(safetensors::Dtype::U8, vec![3], &data[..])];
+            crate::field::io::write_tensors(&tensors, &["x".to_string()], &t, Default::default()).unwrap();
+        };
+        write();
+        assert_eq!(mode(&tensors), mode(&plain));
+        std::fs::set_permissions(&tensors, std::fs::Permissions::from_mode(0o604)).unwrap();
+        write();
+        assert_eq!(mode(&tensors), 0o604);
     }
 }

@@ -526,16 +526,14 @@ pub fn write_tensors(
     meta: HashMap<String, String>,
 ) -> Result<()> {
     let v = views(names, tensors.iter().map(|(d, s, b)| (*d, s, *b)))?;
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => std::path::PathBuf::from("."),
-    };
-    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
-    let tmp = tempfile::NamedTempFile::new_in(&dir)
-        .map_err(|e| Error::io(&dir, e))?
-        .into_temp_path();
+    let tmp = crate::error::temp_beside(path)?;
+    let mode = tmp.as_file().metadata().map_err(|e| Error::io(path, e))?.permissions();
+    let tmp = tmp.into_temp_path();
     safetensors::serialize_to_file(v, Some(meta), &tmp)
         .map_err(|e| Error::invalid(format!("cannot write {}: {e}", path.display())))?;
+    // safetensors writes through a temporary file of its own (owner-only)
+    // and renames it over ours: give it back the mode ours was made with.
+    std::fs::set_permissions(&tmp, mode).map_err(|e| Error::io(path, e))?;
     canonicalise_file(&tmp).map_err(|e| Error::io(path, e))?;
     tmp.persist(path).map_err(|e| Error::io(path, e.error))?;
     Ok(())
