@@ -531,10 +531,11 @@ pub fn write_tensors(
     let tmp = tmp.into_temp_path();
     safetensors::serialize_to_file(v, Some(meta), &tmp)
         .map_err(|e| Error::invalid(format!("cannot write {}: {e}", path.display())))?;
-    // safetensors writes through a temporary file of its own (owner-only)
-    // and renames it over ours: give it back the mode ours was made with.
-    std::fs::set_permissions(&tmp, mode).map_err(|e| Error::io(path, e))?;
     canonicalise_file(&tmp).map_err(|e| Error::io(path, e))?;
+    // safetensors writes through a temporary file of its own (owner-only)
+    // and renames it over ours: give it back the mode ours was made with,
+    // last, since it may be the read-only mode of the file it replaces.
+    std::fs::set_permissions(&tmp, mode).map_err(|e| Error::io(path, e))?;
     tmp.persist(path).map_err(|e| Error::io(path, e.error))?;
     Ok(())
 }
