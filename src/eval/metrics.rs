@@ -15,9 +15,17 @@ pub struct Confusion {
 
 impl Confusion {
     pub fn of(pred: &[bool], gt: &[bool]) -> Self {
+        Self::count(pred.iter().copied().zip(gt.iter().copied()))
+    }
+    /// [`Confusion::of`] over the pixels `ignore` leaves out.
+    pub fn outside(pred: &[bool], gt: &[bool], ignore: &[bool]) -> Self {
+        let pairs = pred.iter().zip(gt).zip(ignore).filter(|(_, &skip)| !skip);
+        Self::count(pairs.map(|((&p, &g), _)| (p, g)))
+    }
+    fn count(pairs: impl Iterator<Item = (bool, bool)>) -> Self {
         let mut c = Confusion::default();
-        for (&p, &g) in pred.iter().zip(gt) {
-            match (p, g) {
+        for pair in pairs {
+            match pair {
                 (true, true) => c.tp += 1,
                 (true, false) => c.fp += 1,
                 (false, true) => c.fn_ += 1,
@@ -25,13 +33,6 @@ impl Confusion {
             }
         }
         c
-    }
-    /// [`Confusion::of`] over the pixels `ignore` leaves out.
-    pub fn outside(pred: &[bool], gt: &[bool], ignore: &[bool]) -> Self {
-        let keep = |(i, _): &(usize, &bool)| !ignore[*i];
-        let pred: Vec<bool> = pred.iter().enumerate().filter(keep).map(|(_, &p)| p).collect();
-        let gt: Vec<bool> = gt.iter().enumerate().filter(keep).map(|(_, &g)| g).collect();
-        Confusion::of(&pred, &gt)
     }
     /// TP/(TP+FP+FN); 1 when both masks are empty.
     pub fn iou(&self) -> f64 {
@@ -62,9 +63,9 @@ pub fn edge_band(gt: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
     // Trues per clipped window: along rows, then along columns.
     let window = |i: usize, n: usize| i.saturating_sub(r)..(i + r + 1).min(n);
     let mut rows = vec![0u32; w * h];
+    let mut prefix = vec![0u32; w.max(h) + 1];
     for y in 0..h {
         let line = &gt[y * w..(y + 1) * w];
-        let mut prefix = vec![0u32; w + 1];
         for x in 0..w {
             prefix[x + 1] = prefix[x] + line[x] as u32;
         }
@@ -75,7 +76,6 @@ pub fn edge_band(gt: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
     }
     let mut band = vec![false; w * h];
     for x in 0..w {
-        let mut prefix = vec![0u32; h + 1];
         for y in 0..h {
             prefix[y + 1] = prefix[y] + rows[y * w + x];
         }
