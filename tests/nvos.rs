@@ -80,6 +80,13 @@ fn nvos_scores_a_scribbled_object_and_writes_the_selection_it_scored() {
     let report: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     let scored = report["iou"].as_f64().unwrap();
     assert!(scored > 0.8, "ball IoU {scored}");
+    // The oracles: the truth is the ball's own render, so the selection
+    // less what projects outside it keeps the ball and scores at least as
+    // well; every voxel projecting inside it (the floor's under the ball
+    // too, each a few pixels wide on this coarse grid) nearly reproduces it.
+    let oracle = |k: &str| report["oracles"][k].as_f64().unwrap();
+    assert!(oracle("selection_inside_truth") >= scored, "{}", report["oracles"]);
+    assert!(oracle("silhouette") > 0.8, "{}", report["oracles"]);
     // The written selection, rendered on the target view, is the scored
     // prediction: the same IoU against the true mask.
     let (mask, _) = load_bitmap(&sel).unwrap();

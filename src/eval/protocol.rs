@@ -18,6 +18,7 @@ use crate::field::{Bitmap, FeatureCache, Field};
 use crate::render::{render, Probe, RenderOptions, Scene};
 use crate::segment::{object_from_stroke, scribble_stroke, MaskBuilder, Polarity, SegmentParams, Stroke, Timings};
 use glam::Vec2;
+use rayon::prelude::*;
 use serde::Serialize;
 use std::path::Path;
 use std::sync::Arc;
@@ -239,6 +240,7 @@ pub struct NvosReport {
     /// outline (a blurred field's and a hand-drawn or thresholded mask's
     /// least certain pixels) rather than whole parts.
     pub iou_beyond_edge: Vec<(usize, f64)>,
+    pub oracles: NvosOracles,
     pub voxels: usize,
     /// The predicted mask on the target view (row-major, mask size), for
     /// `isrf eval --mask-out`.
@@ -255,6 +257,23 @@ pub struct NvosReport {
     /// The selection itself, for `isrf eval --object-out`.
     #[serde(skip)]
     pub mask: Bitmap,
+}
+
+/// Yardsticks that split a score into the selection's share and the
+/// field's: the IoU of two selections that know the ground truth (so they
+/// are oracles, not segmentations), rendered and scored as the selection is.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct NvosOracles {
+    /// The selection less its voxels whose centres project outside the
+    /// truth: what it would score with nothing wrongly taken.
+    pub selection_inside_truth: f64,
+    /// Every solid voxel whose centre projects inside the truth
+    /// ([`silhouette_voxels`]): about what a selection that is right
+    /// voxel by voxel scores on this field. What it misses is the field's
+    /// geometry (a blurred or misplaced outline; voxels larger than pixels
+    /// spill past it) or the truth's own errors. It is not a strict bound:
+    /// leaving out an outline voxel whose centre is inside may score higher.
+    pub silhouette: f64,
 }
 
 /// An RGB8 picture of where a predicted mask goes wrong: the field's colour
@@ -372,19 +391,38 @@ pub fn evaluate_nvos(
     }
     let mask = builder.mask;
     let gt_img = crate::data::open_image(&mask_path, None)?.to_luma8();
-    let cam = camera_at(target_cam, gt_img.width(), gt_img.height());
+    let gt: Vec<bool> = gt_img.pixels().map(|p| p.0[0] > 127).collect();
+    let size = [gt_img.width(), gt_img.height()];
+    let cam = camera_at(target_cam, size[0], size[1]);
+    // The selection and the two oracles of `NvosReport::oracles`, in one render.
+    let silhouette = silhouette_voxels(&cache, params.sigma_floor(cache.voxel_size), &cam, &gt, size);
+    let mut inside = mask.clone();
+    inside.intersect_with(&silhouette)?;
+    let probe = |m: Bitmap| Probe {
+        layer: 0,
+        mask: Arc::new(m),
+    };
     let opts = RenderOptions {
-        probes: vec![Probe {
-            layer: 0,
-            mask: Arc::new(mask.clone()),
-        }],
+        probes: vec![probe(mask.clone()), probe(inside), probe(silhouette)],
         depth: false,
         ..Default::default()
     };
     let f = render(&scene, &cam, &opts)?;
-    let gt: Vec<bool> = gt_img.pixels().map(|p| p.0[0] > 127).collect();
-    let pred: Vec<bool> = f.out.probe_opacity.iter().map(|&v| v > 0.1).collect();
+    let n = gt.len();
+    let opacity = &f.out.probe_opacity[..n];
+    let pred: Vec<bool> = opacity.iter().map(|&v| v > 0.1).collect();
     let c = Confusion::of(&pred, &gt);
+    let iou_of_probe = |k: usize| {
+        let p: Vec<bool> = f.out.probe_opacity[k * n..(k + 1) * n]
+            .iter()
+            .map(|&v| v > 0.1)
+            .collect();
+        Confusion::of(&p, &gt).iou()
+    };
+    let oracles = NvosOracles {
+        selection_inside_truth: iou_of_probe(1),
+        silhouette: iou_of_probe(2),
+    };
     Ok(NvosReport {
         scene: scene_name.into(),
         reference: ref_stem,
@@ -393,28 +431,51 @@ pub fn evaluate_nvos(
         negative_scribbles: neg.len(),
         iou: c.iou(),
         accuracy: c.accuracy(),
-        ap: average_precision(&f.out.probe_opacity, &gt),
+        ap: average_precision(opacity, &gt),
         iou_by_share: [0.1f32, 0.3, 0.5, 0.7]
             .iter()
             .map(|&s| {
-                let p: Vec<bool> = f.out.probe_opacity.iter().map(|&v| v > s).collect();
+                let p: Vec<bool> = opacity.iter().map(|&v| v > s).collect();
                 (s, Confusion::of(&p, &gt).iou())
             })
             .collect(),
         iou_beyond_edge: [1, 2]
             .iter()
             .map(|&r| {
-                let band = edge_band(&gt, gt_img.width() as usize, gt_img.height() as usize, r);
+                let band = edge_band(&gt, size[0] as usize, size[1] as usize, r);
                 (r, Confusion::outside(&pred, &gt, &band).iou())
             })
             .collect(),
+        oracles,
         voxels: mask.count(),
         mask,
         predicted: pred,
         truth: gt,
         render: f.out.color,
-        size: [gt_img.width(), gt_img.height()],
+        size,
     })
+}
+
+/// The solid voxels (σ above `floor`) of `cache` whose centres project
+/// inside `truth` (row-major, `size` pixels) on `cam`: the selection that
+/// reproduces the truth on this view as well as the field's geometry
+/// allows, whatever lies behind it ([`NvosOracles`]).
+pub fn silhouette_voxels(cache: &FeatureCache, floor: f32, cam: &Camera, truth: &[bool], size: [u32; 2]) -> Bitmap {
+    let [w, h] = size.map(|s| s as f32);
+    let inside = |v: u32| {
+        cam.project(cache.geom.point_of(v as usize)).is_some_and(|(px, _)| {
+            px.x >= 0.0
+                && px.y >= 0.0
+                && px.x < w
+                && px.y < h
+                && truth[px.y as usize * size[0] as usize + px.x as usize]
+        })
+    };
+    let kept: Vec<u32> = (cache.voxels.par_iter().zip(&cache.sigma))
+        .filter(|&(&v, &s)| s > floor && inside(v))
+        .map(|(&v, _)| v)
+        .collect();
+    Bitmap::from_ones(cache.geom.res, &kept)
 }
 
 /// IoU of a segmented object's rendered mask with the true foreground
@@ -493,5 +554,60 @@ mod tests {
         );
         // Colours past [0, 1] (a render's background) are clamped, not wrapped.
         assert_eq!(error_overlay(&[Vec3::splat(9.0)], &[true], &[true]), [153, 153, 153]);
+    }
+
+    #[test]
+    fn the_silhouette_bound_takes_what_projects_inside_the_truth_and_nothing_else() {
+        let scene = crate::demo::build("tabletop", 48, 0).unwrap();
+        let cache = scene.field.feature_cache().unwrap();
+        let cam = scene.cameras.frames[3].camera;
+        let k = cam.intrinsics;
+        let size = [k.width, k.height];
+        let floor = SegmentParams::default().sigma_floor(cache.voxel_size);
+        let solid = cache.solid(floor);
+        let of = |name: &str| {
+            let mut m = scene.labels.mask(scene.labels.label_of(name).unwrap());
+            m.intersect_with(&solid).unwrap();
+            m
+        };
+        // Where the ball shows on this view (any of its light), as a mask.
+        let opts = RenderOptions {
+            probes: vec![Probe {
+                layer: 0,
+                mask: Arc::new(of("ball")),
+            }],
+            depth: false,
+            ..Default::default()
+        };
+        let shown = render(&Scene::single(Arc::new(scene.field.clone())), &cam, &opts).unwrap();
+        let truth: Vec<bool> = shown.out.probe_opacity.iter().map(|&v| v > 0.0).collect();
+        assert!(truth.iter().any(|&t| t), "the ball is in view");
+
+        let none = silhouette_voxels(&cache, floor, &cam, &vec![false; truth.len()], size);
+        assert_eq!(none.count(), 0, "an empty truth takes nothing");
+
+        let inside = silhouette_voxels(&cache, floor, &cam, &truth, size);
+        let ball = of("ball");
+        // (Not all of them: a few are hidden on this view, so not in the truth.)
+        let taken = inside.intersection_count(&ball).unwrap();
+        assert!(taken * 10 >= ball.count() * 9, "{taken} of the ball's {}", ball.count());
+        // The floor under the ball is taken only where the ball covers it.
+        let floor_voxels = of("floor");
+        let taken = inside.intersection_count(&floor_voxels).unwrap();
+        assert!(
+            taken > 0 && taken * 20 < floor_voxels.count(),
+            "{taken} of the floor's {}",
+            floor_voxels.count()
+        );
+        // Each taken voxel projects inside the truth, each other solid one outside it.
+        for v in solid.ones() {
+            let px = cam.project(cache.geom.point_of(v)).map(|(p, _)| p);
+            let on_truth = px.is_some_and(|p| {
+                (0.0..size[0] as f32).contains(&p.x)
+                    && (0.0..size[1] as f32).contains(&p.y)
+                    && truth[p.y as usize * size[0] as usize + p.x as usize]
+            });
+            assert_eq!(inside.get(v), on_truth, "voxel {v} at {px:?}");
+        }
     }
 }
