@@ -457,9 +457,9 @@ pub fn evaluate_nvos(
 }
 
 /// The solid voxels (σ above `floor`) of `cache` whose centres project
-/// inside `truth` (row-major, `size` pixels) on `cam`: the selection that
-/// reproduces the truth on this view as well as the field's geometry
-/// allows, whatever lies behind it ([`NvosOracles`]).
+/// inside `truth` (row-major, `size` pixels) on `cam`, whatever lies behind
+/// them: a selection that knows the truth of this one view
+/// ([`NvosOracles::silhouette`]).
 pub fn silhouette_voxels(cache: &FeatureCache, floor: f32, cam: &Camera, truth: &[bool], size: [u32; 2]) -> Bitmap {
     let [w, h] = size.map(|s| s as f32);
     let inside = |v: u32| {
@@ -557,7 +557,7 @@ mod tests {
     }
 
     #[test]
-    fn the_silhouette_bound_takes_what_projects_inside_the_truth_and_nothing_else() {
+    fn the_silhouette_oracle_takes_what_projects_inside_the_truth_and_nothing_else() {
         let scene = crate::demo::build("tabletop", 48, 0).unwrap();
         let cache = scene.field.feature_cache().unwrap();
         let cam = scene.cameras.frames[3].camera;
