@@ -4,9 +4,11 @@
 
 use isrf::camera::{Camera, CameraSet};
 use isrf::eval::metrics::iou;
+use isrf::eval::protocol::silhouette_voxels;
 use isrf::field::{Bitmap, Field};
 use isrf::render::{render, Probe, RenderOptions, Scene};
 use isrf::segment::bitmap_file::load_bitmap;
+use isrf::segment::SegmentParams;
 use std::path::Path;
 use std::process::Command;
 use std::sync::Arc;
@@ -80,19 +82,39 @@ fn nvos_scores_a_scribbled_object_and_writes_the_selection_it_scored() {
     let report: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     let scored = report["iou"].as_f64().unwrap();
     assert!(scored > 0.8, "ball IoU {scored}");
-    // The oracles: the truth is the ball's own render, so the selection
-    // less what projects outside it keeps the ball and scores at least as
-    // well; every voxel projecting inside it (the floor's under the ball
-    // too, each a few pixels wide on this coarse grid) nearly reproduces it.
-    let oracle = |k: &str| report["oracles"][k].as_f64().unwrap();
-    assert!(oracle("selection_inside_truth") >= scored, "{}", report["oracles"]);
-    assert!(oracle("silhouette") > 0.8, "{}", report["oracles"]);
     // The written selection, rendered on the target view, is the scored
     // prediction: the same IoU against the true mask.
     let (mask, _) = load_bitmap(&sel).unwrap();
     assert_eq!(mask.count() as u64, report["voxels"].as_u64().unwrap());
-    let predicted = probe(&field, &target.camera, mask);
     let over = |o: &[f32]| o.iter().map(|&v| v > 0.1).collect::<Vec<bool>>();
-    let rendered = iou(&over(&predicted), &over(&on_target));
+    let truth = over(&on_target);
+    let scored_here = |m: Bitmap| iou(&over(&probe(&field, &target.camera, m)), &truth);
+    let rendered = scored_here(mask.clone());
     assert!((rendered - scored).abs() < 1e-9, "{rendered} vs {scored}");
+
+    // The oracles are those selections, rendered and scored the same way.
+    // The truth is the ball's own render, so the selection less what
+    // projects outside it keeps the ball and scores at least as well; every
+    // voxel projecting inside it (the floor's under the ball too, each a few
+    // pixels wide on this coarse grid) nearly reproduces it.
+    let oracle = |k: &str| report["oracles"][k].as_f64().unwrap();
+    let cache = field.feature_cache().unwrap();
+    let floor = SegmentParams::default().sigma_floor(cache.voxel_size);
+    let k = target.camera.intrinsics;
+    let silhouette = silhouette_voxels(&cache, floor, &target.camera, &truth, [k.width, k.height]);
+    let mut inside = mask;
+    inside.intersect_with(&silhouette).unwrap();
+    let (inside, silhouette) = (scored_here(inside), scored_here(silhouette));
+    assert!(
+        (oracle("selection_inside_truth") - inside).abs() < 1e-9,
+        "{inside}: {}",
+        report["oracles"]
+    );
+    assert!(
+        (oracle("silhouette") - silhouette).abs() < 1e-9,
+        "{silhouette}: {}",
+        report["oracles"]
+    );
+    assert!(inside >= scored && inside > silhouette, "{}", report["oracles"]);
+    assert!(silhouette > 0.8, "{}", report["oracles"]);
 }

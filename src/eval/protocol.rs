@@ -409,19 +409,18 @@ pub fn evaluate_nvos(
     };
     let f = render(&scene, &cam, &opts)?;
     let n = gt.len();
-    let opacity = &f.out.probe_opacity[..n];
-    let pred: Vec<bool> = opacity.iter().map(|&v| v > 0.1).collect();
-    let c = Confusion::of(&pred, &gt);
-    let iou_of_probe = |k: usize| {
-        let p: Vec<bool> = f.out.probe_opacity[k * n..(k + 1) * n]
+    let shown = |k: usize| -> Vec<bool> {
+        f.out.probe_opacity[k * n..(k + 1) * n]
             .iter()
             .map(|&v| v > 0.1)
-            .collect();
-        Confusion::of(&p, &gt).iou()
+            .collect()
     };
+    let opacity = &f.out.probe_opacity[..n];
+    let pred = shown(0);
+    let c = Confusion::of(&pred, &gt);
     let oracles = NvosOracles {
-        selection_inside_truth: iou_of_probe(1),
-        silhouette: iou_of_probe(2),
+        selection_inside_truth: Confusion::of(&shown(1), &gt).iou(),
+        silhouette: Confusion::of(&shown(2), &gt).iou(),
     };
     Ok(NvosReport {
         scene: scene_name.into(),
