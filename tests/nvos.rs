@@ -91,6 +91,18 @@ fn nvos_scores_a_scribbled_object_and_writes_the_selection_it_scored() {
     let scored_here = |m: Bitmap| iou(&over(&probe(&field, &target.camera, m)), &truth);
     let rendered = scored_here(mask.clone());
     assert!((rendered - scored).abs() < 1e-9, "{rendered} vs {scored}");
+    // Its pixel counts are that render's against the truth.
+    let shown = over(&probe(&field, &target.camera, mask.clone()));
+    let count = |want: (bool, bool)| shown.iter().zip(&truth).filter(|&(&p, &t)| (p, t) == want).count() as u64;
+    let pixels = &report["pixels"];
+    for (key, want) in [
+        ("tp", (true, true)),
+        ("fp", (true, false)),
+        ("fn", (false, true)),
+        ("tn", (false, false)),
+    ] {
+        assert_eq!(pixels[key].as_u64(), Some(count(want)), "{key}: {pixels}");
+    }
 
     // The oracles are those selections, rendered and scored the same way.
     // The truth is the ball's own render, so the selection less what

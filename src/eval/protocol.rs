@@ -241,6 +241,9 @@ pub struct NvosReport {
     /// least certain pixels) rather than whole parts.
     pub iou_beyond_edge: Vec<(usize, f64)>,
     pub oracles: NvosOracles,
+    /// The pixel counts behind `iou` and `accuracy`: right (`tp`), false
+    /// (`fp`), missed (`fn`) and rightly left out (`tn`).
+    pub pixels: Confusion,
     pub voxels: usize,
     /// The predicted mask on the target view (row-major, mask size), for
     /// `isrf eval --mask-out`.
@@ -446,6 +449,7 @@ pub fn evaluate_nvos(
             })
             .collect(),
         oracles,
+        pixels: c,
         voxels: mask.count(),
         mask,
         predicted: pred,
