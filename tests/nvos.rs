@@ -89,10 +89,10 @@ fn nvos_scores_a_scribbled_object_and_writes_the_selection_it_scored() {
     let over = |o: &[f32]| o.iter().map(|&v| v > 0.1).collect::<Vec<bool>>();
     let truth = over(&on_target);
     let scored_here = |m: Bitmap| iou(&over(&probe(&field, &target.camera, m)), &truth);
-    let rendered = scored_here(mask.clone());
+    let shown = over(&probe(&field, &target.camera, mask.clone()));
+    let rendered = iou(&shown, &truth);
     assert!((rendered - scored).abs() < 1e-9, "{rendered} vs {scored}");
     // Its pixel counts are that render's against the truth.
-    let shown = over(&probe(&field, &target.camera, mask.clone()));
     let count = |want: (bool, bool)| shown.iter().zip(&truth).filter(|&(&p, &t)| (p, t) == want).count() as u64;
     let pixels = &report["pixels"];
     for (key, want) in [

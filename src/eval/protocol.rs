@@ -412,12 +412,8 @@ pub fn evaluate_nvos(
     };
     let f = render(&scene, &cam, &opts)?;
     let n = gt.len();
-    let shown = |k: usize| -> Vec<bool> {
-        f.out.probe_opacity[k * n..(k + 1) * n]
-            .iter()
-            .map(|&v| v > 0.1)
-            .collect()
-    };
+    let above = |opacity: &[f32], s: f32| -> Vec<bool> { opacity.iter().map(|&v| v > s).collect() };
+    let shown = |k: usize| above(&f.out.probe_opacity[k * n..(k + 1) * n], 0.1);
     let opacity = &f.out.probe_opacity[..n];
     let pred = shown(0);
     let c = Confusion::of(&pred, &gt);
@@ -436,10 +432,7 @@ pub fn evaluate_nvos(
         ap: average_precision(opacity, &gt),
         iou_by_share: [0.1f32, 0.3, 0.5, 0.7]
             .iter()
-            .map(|&s| {
-                let p: Vec<bool> = opacity.iter().map(|&v| v > s).collect();
-                (s, Confusion::of(&p, &gt).iou())
-            })
+            .map(|&s| (s, Confusion::of(&above(opacity, s), &gt).iou()))
             .collect(),
         iou_beyond_edge: [1, 2]
             .iter()
